@@ -1,0 +1,55 @@
+# Slipstream: `make demo` runs the main job, `make test` runs every check. Both set up .venv.
+SHELL := /bin/bash
+VENV ?= .venv
+PY := $(VENV)/bin/python
+PIP := $(VENV)/bin/pip
+STAMP := $(VENV)/.installed-$(shell cat pyproject.toml | md5sum | cut -c1-12)
+SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
+ARTIFACTS ?= artifacts
+
+.PHONY: install system lint typecheck test demo bench clean
+
+$(PY):
+	python3 -m venv $(VENV)
+
+# torch first and pinned: it takes the CPU build; an unpinned torch pulls GBs of CUDA wheels.
+$(STAMP): pyproject.toml | $(PY)
+	$(PIP) install -q --upgrade pip
+	$(PIP) install -q torch==2.13.0
+	$(PIP) install -q -e '.[train,dev]'
+	rm -f $(VENV)/.installed-* && touch $@
+
+install: $(STAMP)
+
+# Debian packages the sandbox and the browser tests need, installed only when missing.
+system:
+	@missing=""; \
+	command -v bwrap >/dev/null || missing="$$missing bubblewrap"; \
+	if [ -n "$$missing" ]; then \
+	  echo "installing system packages:$$missing"; \
+	  $(SUDO) apt-get update -qq && $(SUDO) apt-get install -y -qq $$missing >/dev/null; \
+	fi
+
+lint: install
+	$(VENV)/bin/ruff format --check .
+	$(VENV)/bin/ruff check .
+
+typecheck: install
+	$(VENV)/bin/mypy
+
+test: install system lint typecheck
+	mkdir -p $(ARTIFACTS)
+	$(VENV)/bin/pytest -n 2 -q --doctest-modules tracks arena agents submissions leaderboard tests
+
+demo: install
+	mkdir -p $(ARTIFACTS)/demo
+	$(VENV)/bin/slipstream tracks list
+	@for t in $$($(VENV)/bin/slipstream tracks list --names); do \
+	  $(VENV)/bin/slipstream tracks show $$t --out $(ARTIFACTS)/demo/$$t.png; done
+	@echo "track plots in $(ARTIFACTS)/demo/"
+
+bench: install
+	$(PY) bench/track_speed.py
+
+clean:
+	rm -rf $(VENV) $(ARTIFACTS) .pytest_cache .mypy_cache .ruff_cache

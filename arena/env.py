@@ -1,0 +1,571 @@
+"""The Slipstream racing environment, a PettingZoo ``ParallelEnv``."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from gymnasium import spaces
+from numpy.typing import NDArray
+from pettingzoo import ParallelEnv
+
+from arena.actions import DiscreteActions
+from arena.deepracer import DeepRacerParams, RewardFunction
+from arena.lidar import DEFAULT_FOV, DEFAULT_RANGE, Lidar
+from arena.observations import (
+    EGO_FEATURES,
+    EGO_HIGH,
+    EGO_LOW,
+    LOOKAHEAD,
+    OPP_HIGH,
+    OPP_LOW,
+    OPPONENT_FEATURES,
+    TRACK_LIMIT,
+    ObservationLayout,
+    ego_features,
+    opponent_features,
+    track_ahead_features,
+    vector_observation,
+    wrap_angle,
+)
+from arena.render import TopDownRenderer
+from arena.rewards import RewardWeights, collision_blame, race_positions, racing_terms
+from arena.sim import CarParams, Simulator, SimError, SimState
+from arena.walls import DEFAULT_RUNOFF, Walls
+from tracks import LapCounter, Track, load_track
+
+ENV_VERSION = "0.1"
+ObsMode = Literal["vector", "dict", "image"]
+ActionMode = Literal["continuous", "discrete"]
+IMAGE_SHAPE = (120, 160, 1)  # rows, columns, channels: DeepRacer's 160×120 grayscale camera
+STUCK_DISTANCE = 0.5  # m of progress a car must make within ``stuck_time`` seconds
+FLIP_UPRIGHT = 0.3  # z of the car's up axis below which it counts as flipped
+CUT_JUMP = 3.0  # m: a larger jump in progress in one control step is a cut, not driving
+Obs = NDArray[np.float32] | NDArray[np.uint8] | dict[str, NDArray[np.float32]]
+
+
+class RacingEnv(ParallelEnv):  # type: ignore[misc]
+    """Several Ackermann cars racing on one track.
+
+    ====================  ===========================================================
+    Import                ``from arena import parallel_env`` (AEC: ``arena.env``)
+    Agents                ``car_0 … car_{n-1}`` (1–16)
+    Action space          ``Box(-1, 1, (2,))`` [steer, throttle] or ``Discrete(5×2)``
+    Observation space     ``Box((n_rays + 21 + 5k,), float32)``, ``Dict``, or image
+    Version               ``ENV_VERSION`` (see Version History)
+    ====================  ===========================================================
+
+    **Action Space.** ``"continuous"``: ``[steer, throttle]`` in [-1, 1]²; steer is the
+    fraction of full lock (0.42 rad, + turns left); positive throttle drives, negative
+    brakes while rolling forward and then reverses. ``"discrete"``: a DeepRacer-style menu
+    of ``n_steer × n_speed`` (steering, target speed) pairs, see :mod:`arena.actions`.
+
+    **Observation Space.** ``"vector"`` (default): a flat float32 Box — lidar ranges
+    (``lidar_rays`` over 270°, 10 m, normalised to [0, 1], cast against walls and the other
+    cars), 7 ego features (speed, lateral speed, steering, yaw rate, heading error, lateral
+    offset relative to the half-width, progress rate), the centre line at 1–10 m ahead as
+    7 ``[dx, dy]`` points in the car's frame, and the ``k_opponents`` nearest cars as
+    ``[present, dx, dy, dvx, dvy]`` in the car's frame; layout in
+    :mod:`arena.observations`. ``"dict"``: the same, named (``lidar``, the ego feature
+    names, ``track_ahead`` (7, 2), ``opponents`` (k, 5)). ``"image"``: a 160×120 grayscale ego camera (uint8,
+    (120, 160, 1)), rendered headless with pybullet's TinyRenderer — slower.
+
+    **Rewards.** ``"racing"`` (default) = progress (metres along the centre line; negative
+    backwards) − off-track (1/s) − wall contact (2/s) − collision (0.5 × closing speed in
+    m/s, only for the car to blame: the one that drives into another from behind) +
+    overtaking (1 per place gained, −1 per place lost). Worked number: at 5 m/s and 20 Hz a
+    car gains 0.25 m per step, reward 0.25; rear-ending a car while closing at 2 m/s costs
+    1.0 that step, the car hit pays nothing. ``"progress"``: progress only. Or any DeepRacer
+    ``reward_function(params) -> float`` (params as in :mod:`arena.deepracer`). Every term
+    is reported per car in ``infos[agent]["reward_terms"]``.
+
+    **Starting State.** A staggered two-wide grid behind the start line, cars at rest.
+    ``reset(seed, options)`` options: ``grid_order`` (list of car indices, pole first, or
+    ``"random"``), ``start_offset`` (metres along the lap to move the grid, or ``"random"``)
+    and ``direction`` (``"forward"``, ``"reverse"`` or ``"random"``; reverse drives the
+    track the other way round).
+
+    **Episode End.** A car *terminates* when it completes ``laps`` laps (validated by
+    ordered checkpoints; a grid start counts lap 1 from the start signal, a mid-lap start
+    counts from its first crossing of the line), when all four wheels stay off the road for
+    more than ``off_track_limit`` seconds, when it flips, or when it makes less than 0.5 m of
+    progress in ``stuck_time`` seconds. Everyone left is *truncated* after ``max_cycles``
+    steps (default: the time to cover the race at 2.5 m/s, plus 5 s). Cars that are done
+    leave ``agents`` and are lifted off the track; the episode ends when no agent is left.
+
+    **Infos** per car: ``lap`` (current lap, 1-based), ``laps_completed``, ``lap_times``
+    (s), ``s`` (m along the lap), ``race_progress`` (m from the start line), ``rank``,
+    ``collisions`` (list of ``{"with", "at_fault", "closing_speed"}``), ``off_track``,
+    ``wall_contact``, ``reward_terms``, ``speed``, ``dnf_reason`` when a car stops early.
+
+    **Arguments.** ``track`` (built-in name, file path, ``random:<seed>`` or a ``Track``),
+    ``n_cars`` (4), ``laps`` (1), ``control_hz`` (20), ``physics_hz`` (100), ``obs_mode``,
+    ``action_mode``, ``lidar_rays`` (64), ``k_opponents`` (3), ``discrete_actions``
+    ((5, 2)), ``reward``, ``reward_weights``, ``max_cycles``, ``render_mode``
+    (None or ``"rgb_array"``: top-down image), ``off_track_limit`` (3 s), ``stuck_time``
+    (4 s), ``runoff`` (0.4 m of run-off before the walls), ``car_params``.
+
+    **Version History.**
+
+    * 0.1: first release.
+
+    >>> env = RacingEnv(track="oval", n_cars=2)
+    >>> obs, infos = env.reset(seed=0)
+    >>> obs["car_0"].shape
+    (95,)
+    >>> env.close()
+    """
+
+    metadata = {  # noqa: RUF012 - PettingZoo reads this class attribute
+        "name": "slipstream_racing_v0",
+        "render_modes": ["rgb_array"],
+        "is_parallelizable": True,
+        "render_fps": 20,
+    }
+
+    def __init__(
+        self,
+        track: str | Path | Track = "oval",
+        n_cars: int = 4,
+        laps: int = 1,
+        *,
+        control_hz: int = 20,
+        physics_hz: int = 100,
+        obs_mode: ObsMode = "vector",
+        action_mode: ActionMode = "continuous",
+        lidar_rays: int = 64,
+        k_opponents: int = 3,
+        discrete_actions: tuple[int, int] = (5, 2),
+        reward: str | RewardFunction = "racing",
+        reward_weights: RewardWeights | None = None,
+        max_cycles: int | None = None,
+        render_mode: str | None = None,
+        off_track_limit: float = 3.0,
+        stuck_time: float = 4.0,
+        runoff: float = DEFAULT_RUNOFF,
+        car_params: CarParams | None = None,
+    ) -> None:
+        if obs_mode not in ("vector", "dict", "image"):
+            raise SimError(f"obs_mode must be 'vector', 'dict' or 'image', got {obs_mode!r}")
+        if action_mode not in ("continuous", "discrete"):
+            raise SimError(f"action_mode must be 'continuous' or 'discrete', got {action_mode!r}")
+        if render_mode not in (None, "rgb_array"):
+            raise SimError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+        if not (isinstance(reward, str) and reward in ("racing", "progress")) and not callable(
+            reward
+        ):
+            raise SimError("reward must be 'racing', 'progress' or a reward_function(params)")
+        if laps < 1:
+            raise SimError(f"laps must be at least 1, got {laps}")
+        self.base_track = load_track(track)
+        self.n_cars = n_cars
+        self.laps = laps
+        self.obs_mode: ObsMode = obs_mode
+        self.action_mode: ActionMode = action_mode
+        self.reward_mode = reward
+        self.weights = reward_weights or RewardWeights()
+        self.render_mode = render_mode
+        self.off_track_limit = off_track_limit
+        self.stuck_time = stuck_time
+        self.runoff = runoff
+        self.sim = Simulator(
+            self.base_track, n_cars, params=car_params, physics_hz=physics_hz,
+            control_hz=control_hz, runoff=runoff, visuals=obs_mode == "image",
+        )
+        self.params = self.sim.params
+        self.control_hz = control_hz
+        self.dt = 1.0 / control_hz
+        self.layout = ObservationLayout(lidar_rays, k_opponents)
+        self._lookahead = np.asarray(LOOKAHEAD)
+        self.discrete = DiscreteActions(*discrete_actions, top_speed=self.params.top_speed)
+        self.race_distance = laps * self.base_track.length
+        self.max_cycles = max_cycles or math.ceil(
+            (5.0 + self.race_distance / 2.5) * control_hz
+        )
+        self.possible_agents = [f"car_{i}" for i in range(n_cars)]
+        self.agent_index = {a: i for i, a in enumerate(self.possible_agents)}
+        self.agents: list[str] = []
+        self._views: dict[bool, tuple[Track, Walls, Lidar, DeepRacerParams | None]] = {}
+        self._observation_spaces = {a: self._make_obs_space() for a in self.possible_agents}
+        self._action_spaces = {a: self._make_action_space() for a in self.possible_agents}
+        self.np_random = np.random.default_rng()
+        self._renderer: TopDownRenderer | None = None
+        self._reversed = False
+        self.track = self.base_track
+
+    # ---- spaces ---------------------------------------------------------------------------
+
+    def _make_obs_space(self) -> spaces.Space[Any]:
+        if self.obs_mode == "image":
+            return spaces.Box(0, 255, IMAGE_SHAPE, dtype=np.uint8)
+        low, high = self.layout.bounds()
+        if self.obs_mode == "vector":
+            return spaces.Box(low, high, dtype=np.float32)
+        named: dict[str, spaces.Space[Any]] = {
+            "lidar": spaces.Box(0.0, 1.0, (self.layout.n_rays,), dtype=np.float32)
+        }
+        for k, name in enumerate(EGO_FEATURES):
+            named[name] = spaces.Box(
+                np.float32(EGO_LOW[k]), np.float32(EGO_HIGH[k]), (1,), dtype=np.float32
+            )
+        named["track_ahead"] = spaces.Box(
+            -TRACK_LIMIT, TRACK_LIMIT, (len(LOOKAHEAD), 2), dtype=np.float32
+        )
+        k_opp = self.layout.k_opponents
+        named["opponents"] = spaces.Box(
+            np.tile(OPP_LOW, (k_opp, 1)).astype(np.float32),
+            np.tile(OPP_HIGH, (k_opp, 1)).astype(np.float32),
+            dtype=np.float32,
+        )
+        return spaces.Dict(named)
+
+    def _make_action_space(self) -> spaces.Space[Any]:
+        if self.action_mode == "discrete":
+            return spaces.Discrete(self.discrete.n)
+        return spaces.Box(-1.0, 1.0, (2,), dtype=np.float32)
+
+    def observation_space(self, agent: str) -> spaces.Space[Any]:
+        """The (cached, identical every call) observation space of ``agent``."""
+        return self._observation_spaces[agent]
+
+    def action_space(self, agent: str) -> spaces.Space[Any]:
+        """The (cached, identical every call) action space of ``agent``."""
+        return self._action_spaces[agent]
+
+    # ---- reset ----------------------------------------------------------------------------
+
+    def _view(self, reverse: bool) -> tuple[Track, Walls, Lidar, DeepRacerParams | None]:
+        """Track, walls, lidar and DeepRacer params for one direction (built once)."""
+        if reverse not in self._views:
+            track = self.base_track.reversed() if reverse else self.base_track
+            walls = Walls.around(track, self.runoff)
+            lidar = Lidar(walls, self.layout.n_rays, DEFAULT_FOV, DEFAULT_RANGE)
+            dr = DeepRacerParams(track, self.race_distance) if callable(self.reward_mode) else None
+            self._views[reverse] = (track, walls, lidar, dr)
+        return self._views[reverse]
+
+    def reset(
+        self, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[dict[str, Obs], dict[str, dict[str, Any]]]:
+        """Start a new race; see the class docstring for ``options``."""
+        if seed is not None:
+            self.np_random = np.random.default_rng(seed)
+        opts = options or {}
+        n = self.n_cars
+        direction = opts.get("direction", "forward")
+        if direction == "random":
+            direction = "reverse" if self.np_random.random() < 0.5 else "forward"
+        if direction not in ("forward", "reverse"):
+            raise SimError(f"direction must be forward, reverse or random, got {direction!r}")
+        self._reversed = direction == "reverse"
+        self.track, self.walls, self.lidar, self._deepracer = self._view(self._reversed)
+        order = opts.get("grid_order")
+        if order == "random":
+            order = self.np_random.permutation(n)
+        order = np.arange(n) if order is None else np.asarray(order, dtype=np.int64)
+        if sorted(order.tolist()) != list(range(n)):
+            raise SimError(f"grid_order must be a permutation of 0..{n - 1}")
+        offset = opts.get("start_offset", 0.0)
+        if offset == "random":
+            offset = float(self.np_random.uniform(0.0, self.track.length))
+        self._grid_start = float(offset) == 0.0
+        slots = self.track.start_grid(n, offset=float(offset))
+        poses = np.empty_like(slots)
+        poses[order] = slots
+        self.grid_order = order
+        state = self.sim.reset(poses)
+
+        proj = self.track.project(state.poses[:, :2])
+        self._s = proj.s
+        self._counter = LapCounter(self.track, proj.s, max_jump=CUT_JUMP)
+        self.race_progress = self.track.delta_s(proj.s, 0.0) + (
+            float(offset) if not self._grid_start else 0.0
+        )
+        self.active = np.ones(n, dtype=bool)
+        self.finished = np.zeros(n, dtype=bool)
+        self.finish_time = np.full(n, np.inf)
+        self.line_time = np.zeros(n)
+        self.lap_times: list[list[float]] = [[] for _ in range(n)]
+        self.off_time = np.zeros(n)
+        self.dnf_reason: list[str | None] = [None] * n
+        self.collision_count = np.zeros(n, dtype=np.int64)
+        self.at_fault_count = np.zeros(n, dtype=np.int64)
+        self.off_track_count = np.zeros(n, dtype=np.int64)
+        window = max(1, round(self.stuck_time * self.control_hz))
+        self._progress_history = np.tile(self.race_progress, (window, 1))
+        self.steps = 0
+        self.agents = list(self.possible_agents)
+        self.positions = race_positions(self.race_progress)
+        self.state = state
+        obs = self._observations(state, proj.segment, proj.d, self._heading_error(state, proj))
+        zero_terms = {k: 0.0 for k in ("progress", "off_track", "wall", "collision", "overtake")}
+        infos = {
+            a: self._info(i, [], False, False, zero_terms) for i, a in enumerate(self.agents)
+        }
+        self._last_proj = proj
+        return {a: obs[i] for i, a in enumerate(self.agents)}, infos
+
+    # ---- step -----------------------------------------------------------------------------
+
+    def _controls(self, actions: dict[str, Any]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Steering commands and throttles (n,) for every car; parked cars get zeros."""
+        n = self.n_cars
+        if self.action_mode == "discrete":
+            idx = np.zeros(n, dtype=np.int64)
+            for agent, act in actions.items():
+                i = self.agent_index[agent]
+                idx[i] = int(np.asarray(act).reshape(()))
+            steer, throttle = self.discrete.to_controls(idx, self.state.v_long)
+            return np.where(self.active, steer, 0.0), np.where(self.active, throttle, 0.0)
+        cmd = np.zeros((n, 2))
+        for agent, act in actions.items():
+            a = np.asarray(act, dtype=np.float64).reshape(-1)
+            if a.shape != (2,):
+                raise SimError(f"action for {agent} must have shape (2,), got {a.shape}")
+            cmd[self.agent_index[agent]] = np.nan_to_num(a, nan=0.0, posinf=1.0, neginf=-1.0)
+        cmd = np.clip(cmd, -1.0, 1.0) * self.active[:, None]
+        return cmd[:, 0], cmd[:, 1]
+
+    def step(
+        self, actions: dict[str, Any]
+    ) -> tuple[
+        dict[str, Obs],
+        dict[str, float],
+        dict[str, bool],
+        dict[str, bool],
+        dict[str, dict[str, Any]],
+    ]:
+        """Advance every car one control step; PettingZoo parallel semantics."""
+        if not self.agents:
+            raise SimError("step() called on a finished episode; call reset() first")
+        steer, throttle = self._controls(actions)
+        state = self.sim.step(steer, throttle)
+        self.steps += 1
+        now = state.time
+        track, n = self.track, self.n_cars
+        active = self.active
+
+        proj = track.project(state.poses[:, :2])
+        ds = track.delta_s(proj.s, self._s)
+        cut = np.abs(ds) > CUT_JUMP
+        progress = np.where(active & ~cut, ds, 0.0)
+        self.race_progress = self.race_progress + progress
+        self._s = proj.s
+
+        laps_before = self._counter.laps.copy()
+        lap_done = self._counter.update(proj.s) & active
+        first_cross = (laps_before < 0) & (self._counter.laps == 0) & active
+        if not self._grid_start:
+            self.line_time = np.where(first_cross, now, self.line_time)
+        for i in np.flatnonzero(lap_done):
+            self.lap_times[i].append(now - float(self.line_time[i]))
+            self.line_time[i] = now
+
+        heading_error = self._heading_error(state, proj)
+        off_track = self._off_track(proj.s, proj.d, heading_error) & active
+        self.off_time = np.where(off_track, self.off_time + self.dt, 0.0)
+        self.off_track_count += (off_track & (self.off_time <= self.dt)).astype(np.int64)
+
+        contact = state.car_contact & active[:, None] & active[None, :]
+        at_fault, closing = collision_blame(state.poses, state.velocity, contact)
+        new_contact = contact  # counted per step in contact
+        self.collision_count += new_contact.any(axis=1)
+        self.at_fault_count += at_fault.any(axis=1)
+
+        newly_finished = active & (self._counter.laps_completed >= self.laps)
+        self.finished |= newly_finished
+        self.finish_time = np.where(newly_finished, now, self.finish_time)
+        rank_key = np.where(self.finished, 1e12 - self.finish_time, self.race_progress)
+        positions = race_positions(np.where(active | self.finished, rank_key, -1e12))
+        gained = np.where(active, self.positions - positions, 0)
+        self.positions = positions
+
+        self._progress_history = np.roll(self._progress_history, -1, axis=0)
+        self._progress_history[-1] = self.race_progress
+        moved = self.race_progress - self._progress_history[0]
+        warmed_up = self.steps >= len(self._progress_history)
+        stuck = active & ~newly_finished & warmed_up & (moved < STUCK_DISTANCE)
+        flipped = active & ~newly_finished & (state.upright < FLIP_UPRIGHT)
+        lost = active & ~newly_finished & (self.off_time > self.off_track_limit)
+        for i in np.flatnonzero(stuck | flipped | lost):
+            self.dnf_reason[i] = "flipped" if flipped[i] else ("off_track" if lost[i] else "stuck")
+        terminated = newly_finished | stuck | flipped | lost
+        truncated = active & ~terminated & (self.steps >= self.max_cycles)
+        for i in np.flatnonzero(truncated):
+            self.dnf_reason[i] = "timeout"
+
+        terms = racing_terms(
+            progress, off_track, state.wall_contact & active, at_fault, closing, gained,
+            self.dt, self.weights,
+        )
+        obs = self._observations(state, proj.segment, proj.d, heading_error)
+        rewards = self._rewards(terms, state, proj, heading_error, off_track, contact)
+
+        result_obs: dict[str, Obs] = {}
+        result_rew: dict[str, float] = {}
+        result_term: dict[str, bool] = {}
+        result_trunc: dict[str, bool] = {}
+        infos: dict[str, dict[str, Any]] = {}
+        for agent in self.agents:
+            i = self.agent_index[agent]
+            result_obs[agent] = obs[i]
+            result_rew[agent] = float(rewards[i])
+            result_term[agent] = bool(terminated[i])
+            result_trunc[agent] = bool(truncated[i])
+            events = [
+                {
+                    "with": self.possible_agents[j],
+                    "at_fault": bool(at_fault[i, j]),
+                    "closing_speed": float(closing[i, j]),
+                }
+                for j in np.flatnonzero(contact[i])
+            ]
+            infos[agent] = self._info(
+                i, events, bool(off_track[i]), bool(state.wall_contact[i]),
+                {k: float(v[i]) for k, v in terms.items()},
+            )
+        done = terminated | truncated
+        for i in np.flatnonzero(done):
+            self.active[i] = False
+            self.sim.park(int(i))
+        self.agents = [a for a in self.agents if not done[self.agent_index[a]]]
+        self.state = state
+        self._last_proj = proj
+        return result_obs, result_rew, result_term, result_trunc, infos
+
+    # ---- pieces ---------------------------------------------------------------------------
+
+    def _heading_error(self, state: SimState, proj: Any) -> NDArray[np.float64]:
+        return wrap_angle(state.poses[:, 2] - proj.heading)
+
+    def _off_track(
+        self, s: NDArray[np.float64], d: NDArray[np.float64], heading_error: NDArray[np.float64]
+    ) -> NDArray[np.bool_]:
+        """True where all four wheels are off the road (DeepRacer's off-track rule)."""
+        p = self.params
+        wx = np.array([0.5, 0.5, -0.5, -0.5]) * p.wheelbase
+        wy = np.array([0.5, -0.5, 0.5, -0.5]) * p.track_width
+        sin, cos = np.sin(heading_error)[:, None], np.cos(heading_error)[:, None]
+        wheel_d = d[:, None] + wx * sin + wy * cos  # lateral offset of each wheel, m
+        left, right = self.track.widths_at(s)
+        on = (wheel_d <= left[:, None]) & (wheel_d >= -right[:, None])
+        self._all_wheels_on = on.all(axis=1)
+        return ~on.any(axis=1)
+
+    def _observations(
+        self,
+        state: SimState,
+        segment: NDArray[np.int64],
+        d: NDArray[np.float64],
+        heading_error: NDArray[np.float64],
+    ) -> list[Obs]:
+        if self.obs_mode == "image":
+            return [self.sim.camera(i, IMAGE_SHAPE[1], IMAGE_SHAPE[0]) for i in range(self.n_cars)]
+        p = self.params
+        corners = self.sim.corners(state.poses)
+        ranges = self.lidar.scan(state.poses, segment, corners) / self.lidar.max_range
+        left, right = self.track.widths_at(self._s)
+        # Progress rate: speed along the centre line, from the velocity and heading error.
+        speed = np.hypot(state.velocity[:, 0], state.velocity[:, 1])
+        course = np.arctan2(state.velocity[:, 1], state.velocity[:, 0])
+        along = speed * np.cos(course - (state.poses[:, 2] - heading_error))
+        ego = ego_features(
+            state.v_long, state.v_lat, state.steering, state.velocity[:, 2], heading_error,
+            d, left, right, along, p.max_speed, p.max_steer,
+        )
+        opp = opponent_features(
+            state.poses, state.velocity, self.active, self.layout.k_opponents,
+            self.lidar.max_range, p.max_speed,
+        )
+        ahead_s = (self._s[:, None] + self._lookahead).ravel()
+        points = self.track.to_cartesian(np.stack([ahead_s, np.zeros_like(ahead_s)], axis=1))
+        ahead = track_ahead_features(
+            state.poses, points.reshape(self.n_cars, -1, 2), self.lidar.max_range
+        )
+        flat = vector_observation(ranges, ego, ahead, opp, self.layout)
+        if self.obs_mode == "vector":
+            return list(flat)
+        out: list[Obs] = []
+        for row in flat:
+            named = {"lidar": row[self.layout.lidar]}
+            ego_row = row[self.layout.ego]
+            for k, name in enumerate(EGO_FEATURES):
+                named[name] = ego_row[k : k + 1]
+            named["track_ahead"] = row[self.layout.track_ahead].reshape(len(LOOKAHEAD), 2)
+            named["opponents"] = row[self.layout.opponents].reshape(
+                self.layout.k_opponents, len(OPPONENT_FEATURES)
+            )
+            out.append(named)
+        return out
+
+    def _rewards(
+        self,
+        terms: dict[str, NDArray[np.float64]],
+        state: SimState,
+        proj: Any,
+        heading_error: NDArray[np.float64],
+        off_track: NDArray[np.bool_],
+        contact: NDArray[np.bool_],
+    ) -> NDArray[np.float64]:
+        if self.reward_mode == "racing":
+            return np.sum(list(terms.values()), axis=0)
+        if self.reward_mode == "progress":
+            return terms["progress"]
+        fn: Callable[[dict[str, Any]], float] = self.reward_mode  # type: ignore[assignment]
+        assert self._deepracer is not None
+        out = np.zeros(self.n_cars)
+        for i in np.flatnonzero(self.active):
+            params = self._deepracer.build(
+                int(i), poses=state.poses, speed=state.v_long, steering=state.steering,
+                s=proj.s, d=proj.d, segment=proj.segment, heading_error=heading_error,
+                race_progress=self.race_progress, all_wheels_on=self._all_wheels_on,
+                off_track=off_track, crashed=contact.any(axis=1) | state.wall_contact,
+                present=self.active, steps=self.steps,
+            )
+            out[i] = float(fn(params))
+        terms["deepracer"] = out
+        return out
+
+    def _info(
+        self,
+        i: int,
+        collisions: list[dict[str, Any]],
+        off_track: bool,
+        wall: bool,
+        terms: dict[str, float],
+    ) -> dict[str, Any]:
+        done_laps = int(self._counter.laps_completed[i])
+        info: dict[str, Any] = {
+            "lap": min(done_laps + 1, self.laps),
+            "laps_completed": done_laps,
+            "lap_times": list(self.lap_times[i]),
+            "s": float(self._s[i]),
+            "race_progress": float(self.race_progress[i]),
+            "rank": int(self.positions[i]),
+            "collisions": collisions,
+            "off_track": off_track,
+            "wall_contact": wall,
+            "speed": float(self.state.v_long[i]),
+            "reward_terms": terms,
+        }
+        if self.dnf_reason[i] is not None:
+            info["dnf_reason"] = self.dnf_reason[i]
+        return info
+
+    # ---- rendering ------------------------------------------------------------------------
+
+    def render(self) -> NDArray[np.uint8] | None:
+        """A top-down RGB image (H, W, 3) of the track and the cars still racing."""
+        if self.render_mode is None:
+            return None
+        if self._renderer is None:
+            self._renderer = TopDownRenderer(self.base_track, Walls.around(self.base_track,
+                                                                           self.runoff))
+        return self._renderer.render(self.sim.corners(self.state.poses), self.active)
+
+    def close(self) -> None:
+        """Release the physics client."""
+        self.sim.close()

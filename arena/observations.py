@@ -1,0 +1,209 @@
+"""Observation functions: pure functions of per-car arrays, vectorised over cars.
+
+The ``"vector"`` observation of one car is a flat float32 array::
+
+    [ lidar (n_rays) | ego (7) | track ahead (7 × 2) | opponents (k × 5) ]
+
+* lidar: ranges / ``max_range``, in [0, 1] (1 = nothing within range);
+* ego: forward speed / v_max, lateral speed / v_max, steering / max_steer,
+  yaw rate / 10 rad/s, heading error / π (car heading minus track heading, + = pointing left
+  of the track direction), lateral offset relative to the half-width on that side (0 on the
+  centre line, ±1 on the road edges, beyond when off the road), progress rate / v_max
+  (metres of centre line per second);
+* track ahead: the centre line at ``LOOKAHEAD`` metres ahead (along the lap from the car's
+  projection), each ``[dx, dy]`` in the car's frame / lidar range — the road's shape ahead,
+  which a pure-pursuit driver steers by and a learner can read curvature from;
+* opponents: the ``k`` nearest other cars, nearest first, each
+  ``[present, dx, dy, dvx, dvy]`` in the car's frame (x forward, y left): positions / lidar
+  range, relative velocities / v_max; absent slots (fewer cars, or finished ones) are zeros.
+
+Every element is clipped to the bounds of :func:`vector_bounds`, so an observation always lies
+inside the observation space.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+
+EGO_FEATURES = (
+    "speed",
+    "lateral_speed",
+    "steering",
+    "yaw_rate",
+    "heading_error",
+    "lateral_offset",
+    "progress_rate",
+)
+OPPONENT_FEATURES = ("present", "dx", "dy", "dvx", "dvy")
+LOOKAHEAD = (1.0, 2.0, 3.0, 4.0, 6.0, 8.0, 10.0)  # m along the centre line
+TRACK_LIMIT = 1.5  # bound of the normalised track-ahead coordinates
+YAW_RATE_SCALE = 10.0  # rad/s
+EGO_LOW = np.array([-1.0, -2.0, -1.0, -2.0, -1.0, -3.0, -2.0])
+EGO_HIGH = np.array([2.0, 2.0, 1.0, 2.0, 1.0, 3.0, 2.0])
+OPP_LOW = np.array([0.0, -1.0, -1.0, -2.0, -2.0])
+OPP_HIGH = np.array([1.0, 1.0, 1.0, 2.0, 2.0])
+
+
+@dataclass(frozen=True)
+class ObservationLayout:
+    """Sizes and slices of the flat vector observation."""
+
+    n_rays: int
+    k_opponents: int
+
+    @property
+    def size(self) -> int:
+        """Length of the flat vector."""
+        return self.opponents.start + len(OPPONENT_FEATURES) * self.k_opponents
+
+    @property
+    def lidar(self) -> slice:
+        """Slice of the lidar ranges."""
+        return slice(0, self.n_rays)
+
+    @property
+    def ego(self) -> slice:
+        """Slice of the ego features."""
+        return slice(self.n_rays, self.n_rays + len(EGO_FEATURES))
+
+    @property
+    def track_ahead(self) -> slice:
+        """Slice of the track-ahead block (len(LOOKAHEAD) × 2, row-major)."""
+        start = self.ego.stop
+        return slice(start, start + 2 * len(LOOKAHEAD))
+
+    @property
+    def opponents(self) -> slice:
+        """Slice of the opponent block (k × 5, row-major)."""
+        start = self.track_ahead.stop
+        return slice(start, start + len(OPPONENT_FEATURES) * self.k_opponents)
+
+    def bounds(self) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """Low and high bounds (size,) of the vector observation."""
+        ahead = np.full(2 * len(LOOKAHEAD), TRACK_LIMIT)
+        low = np.concatenate(
+            [np.zeros(self.n_rays), EGO_LOW, -ahead, np.tile(OPP_LOW, self.k_opponents)]
+        ).astype(np.float32)
+        high = np.concatenate(
+            [np.ones(self.n_rays), EGO_HIGH, ahead, np.tile(OPP_HIGH, self.k_opponents)]
+        ).astype(np.float32)
+        return low, high
+
+
+def wrap_angle(angle: FloatArray) -> FloatArray:
+    """Angles folded into [-π, π)."""
+    return np.mod(angle + np.pi, 2 * np.pi) - np.pi
+
+
+def ego_features(
+    v_long: FloatArray,
+    v_lat: FloatArray,
+    steering: FloatArray,
+    yaw_rate: FloatArray,
+    heading_error: FloatArray,
+    d: FloatArray,
+    width_left: FloatArray,
+    width_right: FloatArray,
+    progress_rate: FloatArray,
+    v_max: float,
+    max_steer: float,
+) -> FloatArray:
+    """Ego block (n, 7), unclipped; inputs are (n,) in m, m/s, rad, rad/s."""
+    half = np.where(d >= 0, width_left, width_right)
+    return np.stack(
+        [
+            v_long / v_max,
+            v_lat / v_max,
+            steering / max_steer,
+            yaw_rate / YAW_RATE_SCALE,
+            heading_error / np.pi,
+            d / half,
+            progress_rate / v_max,
+        ],
+        axis=1,
+    )
+
+
+def track_ahead_features(
+    poses: FloatArray, points_ahead: FloatArray, max_range: float
+) -> FloatArray:
+    """Track-ahead block (n, L, 2): centre-line points (n, L, 2) m in each car's frame / range."""
+    dx = points_ahead[..., 0] - poses[:, 0:1]
+    dy = points_ahead[..., 1] - poses[:, 1:2]
+    cos, sin = np.cos(poses[:, 2:3]), np.sin(poses[:, 2:3])
+    return np.stack([cos * dx + sin * dy, cos * dy - sin * dx], axis=-1) / max_range
+
+
+def opponent_features(
+    poses: FloatArray,
+    velocity: FloatArray,
+    visible: BoolArray,
+    k: int,
+    max_range: float,
+    v_max: float,
+) -> FloatArray:
+    """Nearest-``k`` opponent block (n, k, 5) in each car's frame.
+
+    Args:
+        poses: (n, 3) [x m, y m, yaw rad].
+        velocity: (n, 2+) world velocities [vx, vy] m/s in the first two columns.
+        visible: (n,) False for cars that have left the race (never reported as opponents).
+        k: opponent slots per car.
+        max_range: distance scale, m (the lidar range).
+        v_max: speed scale, m/s.
+    """
+    n = len(poses)
+    out = np.zeros((n, k, len(OPPONENT_FEATURES)))
+    if n < 2 or k == 0:
+        return out
+    delta = poses[None, :, :2] - poses[:, None, :2]  # (n, n, 2): j relative to i, world
+    dvel = velocity[None, :, :2] - velocity[:, None, :2]
+    dist = np.hypot(delta[..., 0], delta[..., 1])
+    valid = visible[None, :] & ~np.eye(n, dtype=bool)
+    dist = np.where(valid, dist, np.inf)
+    order = np.argsort(dist, axis=1, kind="stable")[:, :k]  # (n, min(k, n))
+    m = order.shape[1]
+    rows = np.arange(n)[:, None]
+    cos, sin = np.cos(poses[:, 2])[:, None], np.sin(poses[:, 2])[:, None]
+    dx, dy = delta[rows, order, 0], delta[rows, order, 1]
+    vx, vy = dvel[rows, order, 0], dvel[rows, order, 1]
+    present = np.isfinite(dist[rows, order])
+    block = np.stack(
+        [
+            np.ones_like(dx),
+            (cos * dx + sin * dy) / max_range,
+            (cos * dy - sin * dx) / max_range,
+            (cos * vx + sin * vy) / v_max,
+            (cos * vy - sin * vx) / v_max,
+        ],
+        axis=-1,
+    )
+    out[:, :m] = np.where(present[..., None], block, 0.0)
+    return out
+
+
+def vector_observation(
+    lidar: FloatArray,
+    ego: FloatArray,
+    ahead: FloatArray,
+    opponents: FloatArray,
+    layout: ObservationLayout,
+) -> NDArray[np.float32]:
+    """Flat observations (n, size) float32, clipped into the observation bounds.
+
+    Args:
+        lidar: (n, n_rays) normalised ranges in [0, 1].
+        ego: (n, 7) from :func:`ego_features`.
+        ahead: (n, L, 2) from :func:`track_ahead_features`.
+        opponents: (n, k, 5) from :func:`opponent_features`.
+    """
+    low, high = layout.bounds()
+    n = len(ego)
+    flat = np.concatenate([lidar, ego, ahead.reshape(n, -1), opponents.reshape(n, -1)], axis=1)
+    return np.clip(flat, low, high).astype(np.float32)

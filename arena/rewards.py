@@ -1,0 +1,97 @@
+"""Reward functions: pure functions of per-car arrays, each term reported on its own.
+
+``"racing"`` (default), per car and control step::
+
+    progress   + w_progress  · Δs                      metres along the centre line (− backwards)
+    off_track  − w_off_track · dt · [all wheels off]    per second off the road
+    wall       − w_wall      · dt · [touching a wall]   per second against a wall
+    collision  − w_collision · Σ closing speed          only for contacts the car is to blame for
+    overtake   + w_overtake  · places gained            (− for places lost: passing back and
+                                                        forth earns nothing)
+
+Blame (:func:`collision_blame`) follows the rear-end rule of GT Sophy and DeepRacer: in a
+contact between cars i and j, i is at fault when j lies ahead of it (within ±60° of its
+heading) and i closes on j (``(v_i − v_j) · r̂_ij > 0``); the penalty scales with that closing
+speed. The car that is hit is not at fault. In a head-on contact both are.
+
+``"progress"`` is the progress term alone. A DeepRacer ``reward_function(params)`` gets the
+params dict of :mod:`arena.deepracer`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+
+RACING_TERMS = ("progress", "off_track", "wall", "collision", "overtake")
+BLAME_CONE = math.radians(60.0)  # rad: the other car counts as "ahead" within this angle
+
+
+@dataclass(frozen=True)
+class RewardWeights:
+    """Weights of the racing reward terms (see the module docstring for units)."""
+
+    progress: float = 1.0  # per m
+    off_track: float = 1.0  # per s
+    wall: float = 2.0  # per s
+    collision: float = 0.5  # per m/s of closing speed
+    overtake: float = 1.0  # per place
+
+
+def collision_blame(
+    poses: FloatArray, velocity: FloatArray, contact: BoolArray, cone: float = BLAME_CONE
+) -> tuple[BoolArray, FloatArray]:
+    """Who is to blame in each car–car contact.
+
+    Args:
+        poses: (n, 3) [x m, y m, yaw rad].
+        velocity: (n, 2+) world velocity [vx, vy] m/s in the first two columns.
+        contact: (n, n) symmetric, True where cars touched this step.
+        cone: half-angle, rad, within which the other car counts as ahead.
+
+    Returns:
+        at_fault (n, n): True where car i is to blame for its contact with car j;
+        closing (n, n): closing speed of i on j, m/s (positive when approaching).
+    """
+    rel = poses[None, :, :2] - poses[:, None, :2]  # (n, n, 2): j seen from i
+    dist = np.maximum(np.hypot(rel[..., 0], rel[..., 1]), 1e-9)
+    unit = rel / dist[..., None]
+    dv = velocity[:, None, :2] - velocity[None, :, :2]  # v_i − v_j
+    closing = np.einsum("ijk,ijk->ij", dv, unit)
+    bearing = np.arctan2(rel[..., 1], rel[..., 0]) - poses[:, None, 2]
+    ahead = np.cos(bearing) >= math.cos(cone)
+    return contact & ahead & (closing > 0), closing
+
+
+def race_positions(race_progress: FloatArray) -> NDArray[np.int64]:
+    """1-based positions (n,) from race progress (n,) m: the furthest car is 1st."""
+    order = np.argsort(-race_progress, kind="stable")
+    pos = np.empty(len(order), dtype=np.int64)
+    pos[order] = np.arange(1, len(order) + 1)
+    return pos
+
+
+def racing_terms(
+    progress: FloatArray,
+    off_track: BoolArray,
+    wall: BoolArray,
+    at_fault: BoolArray,
+    closing: FloatArray,
+    places_gained: NDArray[np.int64],
+    dt: float,
+    w: RewardWeights,
+) -> dict[str, FloatArray]:
+    """Each racing reward term (n,) for one control step of ``dt`` seconds."""
+    return {
+        "progress": w.progress * progress,
+        "off_track": -w.off_track * dt * off_track.astype(np.float64),
+        "wall": -w.wall * dt * wall.astype(np.float64),
+        "collision": -w.collision * np.where(at_fault, closing, 0.0).sum(axis=1),
+        "overtake": w.overtake * places_gained.astype(np.float64),
+    }

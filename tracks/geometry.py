@@ -1,0 +1,502 @@
+"""Track geometry: a closed, smooth centre line with per-point half-widths.
+
+Coordinates are metres in a right-handed x-y plane; angles are radians, counter-clockwise from
++x. Progress ``s`` is metres along the centre line in the driving direction, with ``s = 0`` on
+the start/finish line. The lateral offset ``d`` is metres to the *left* of the centre line
+(seen in the driving direction); the road spans ``-width_right(s) <= d <= width_left(s)``.
+
+Frenet coordinates use a frame whose normal is interpolated linearly between the (smooth)
+vertex normals of the centre line. Unlike "project onto the nearest segment", that frame is
+continuous and exactly invertible inside the radius of curvature, so a Cartesian → Frenet →
+Cartesian round trip returns the same point to machine precision, and points on the outside of
+a bend do not collapse onto a vertex.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+from typing import Literal
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.interpolate import CubicSpline
+from scipy.spatial import cKDTree
+
+from tracks.errors import TrackError
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+CAR_LENGTH = 0.5  # m, 1/10-scale car (grid spacing and grid-fit checks use it)
+CAR_WIDTH = 0.3  # m
+DEFAULT_SPACING = 0.1  # m between resampled centre-line points
+DEFAULT_CHECKPOINTS = 10  # ordered gates per lap; gate 0 is the start/finish line
+CORNER_CURVATURE = 1.0 / 12.0  # 1/m: bends tighter than a 12 m radius (1/10 scale) are corners
+CORNER_MIN_TURN = np.deg2rad(30.0)  # rad of heading change for a bend to count as a corner
+_PROJECT_BLOCK = 16384  # points per projection block: keeps the (M, 4) temporaries in cache
+
+
+@dataclass(frozen=True)
+class Projection:
+    """Where points lie relative to the track; every field has shape (M,).
+
+    Attributes:
+        s: progress along the centre line, metres in ``[0, length)``.
+        d: signed lateral offset, metres, positive to the left of the driving direction.
+        heading: heading of the centre line at ``s``, radians in ``(-pi, pi]``.
+        segment: index ``i`` of the centre-line segment ``i -> i+1`` the point projects onto.
+    """
+
+    s: FloatArray
+    d: FloatArray
+    heading: FloatArray
+    segment: IntArray
+
+
+def _cross(a: FloatArray, b: FloatArray) -> FloatArray:
+    """z-component of the 2D cross product over the last axis."""
+    return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+
+
+def _as_points(points: ArrayLike, what: str = "points") -> FloatArray:
+    arr = np.asarray(points, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != 2:
+        raise TrackError(f"{what} must have shape (N, 2), got {arr.shape}")
+    return arr
+
+
+def _as_widths(width: ArrayLike, n: int, what: str) -> FloatArray:
+    arr = np.asarray(width, dtype=np.float64)
+    if arr.ndim == 0:
+        arr = np.full(n, float(arr))
+    if arr.shape != (n,):
+        raise TrackError(f"{what} must be a number or have one value per centre-line point ({n})")
+    return arr
+
+
+def signed_area(points: FloatArray) -> float:
+    """Shoelace area of a closed polygon (N, 2): positive when anticlockwise."""
+    x, y = points[:, 0], points[:, 1]
+    return 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y))
+
+
+def smooth_closed_curve(
+    points: FloatArray, widths: FloatArray, spacing: float
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Fit a periodic cubic spline through closed points and resample it at even arc length.
+
+    Args:
+        points: (K, 2) control points in order, m; the curve closes from the last to the first.
+        widths: (K, 2) left/right half-widths at the control points, m (interpolated linearly).
+        spacing: target distance between resampled points, m.
+
+    Returns:
+        centre (N, 2) m, widths (N, 2) m, unit tangents (N, 2), curvature (N,) 1/m.
+    """
+    closed = np.vstack([points, points[:1]])
+    chord = np.linalg.norm(np.diff(closed, axis=0), axis=1)
+    u = np.concatenate([[0.0], np.cumsum(chord)])
+    spline = CubicSpline(u, closed, bc_type="periodic")
+    # Arc length by dense sampling; invert it to place points at even spacing.
+    dense_u = np.linspace(0.0, u[-1], max(20 * len(points), int(40 * u[-1] / spacing)) + 1)
+    dense = spline(dense_u)
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(dense, axis=0), axis=1))])
+    n = max(8, round(arc[-1] / spacing))
+    target = np.linspace(0.0, arc[-1], n, endpoint=False)
+    u_even = np.interp(target, arc, dense_u)
+    centre = spline(u_even)
+    d1 = spline(u_even, 1)
+    d2 = spline(u_even, 2)
+    speed = np.linalg.norm(d1, axis=1)
+    tangents = d1 / speed[:, None]
+    curvature = _cross(d1, d2) / speed**3
+    closed_w = np.vstack([widths, widths[:1]])
+    w = np.stack([np.interp(u_even, u, closed_w[:, k]) for k in range(2)], axis=1)
+    return centre, w, tangents, curvature
+
+
+class Track:
+    """A closed race track: smooth centre line, half-widths, start line and driving direction.
+
+    Build one from control points (any orientation is fine: the order of the points is the
+    driving direction). The points are smoothed with a periodic cubic spline and resampled at
+    ``spacing`` metres, then rotated so that index 0 (``s = 0``) lies on the start line.
+
+    Args:
+        centre: (K, 2) control points of the centre line, m, in driving order.
+        width_left: half-width to the left border, m; a number or (K,) values.
+        width_right: half-width to the right border, m; a number or (K,) values.
+        name: short identifier (file name of a built-in track).
+        description: one line for people.
+        start_s: where the start/finish line is, metres along the smoothed curve from the
+            first control point.
+        spacing: resampling distance, m. ``smooth=False`` keeps the points as given.
+        smooth: fit and resample a spline (True) or use ``centre`` as the polyline itself.
+        validate: run :func:`tracks.validation.validate_track` and raise :class:`TrackError`.
+    """
+
+    def __init__(
+        self,
+        centre: ArrayLike,
+        width_left: ArrayLike,
+        width_right: ArrayLike,
+        *,
+        name: str = "track",
+        description: str = "",
+        start_s: float = 0.0,
+        spacing: float = DEFAULT_SPACING,
+        smooth: bool = True,
+        validate: bool = True,
+    ) -> None:
+        from tracks.validation import check_raw_inputs, validate_track  # noqa: PLC0415 (cycle)
+
+        pts = _as_points(centre, "centre line")
+        if len(pts) > 1 and np.allclose(pts[0], pts[-1]):
+            pts = pts[:-1]  # a closing duplicate of the first point
+        wl = _as_widths(width_left, len(pts), "width_left")
+        wr = _as_widths(width_right, len(pts), "width_right")
+        check_raw_inputs(pts, wl, wr)
+        self.name = name
+        self.description = description
+        if smooth:
+            c, w, tangents, curvature = smooth_closed_curve(
+                pts, np.stack([wl, wr], axis=1), spacing
+            )
+        else:
+            c, w = pts, np.stack([wl, wr], axis=1)
+            tangents, curvature = _polyline_tangents_curvature(c)
+        seg = np.linalg.norm(np.roll(c, -1, axis=0) - c, axis=1)
+        s0 = float(start_s) % float(seg.sum())
+        shift = int(np.searchsorted(np.cumsum(seg), s0, side="right")) % len(c)
+        self._set_arrays(
+            np.roll(c, -shift, axis=0),
+            np.roll(w, -shift, axis=0),
+            np.roll(tangents, -shift, axis=0),
+            np.roll(curvature, -shift),
+        )
+        if validate:
+            validate_track(self)
+
+    def _set_arrays(
+        self, centre: FloatArray, widths: FloatArray, tangents: FloatArray, curvature: FloatArray
+    ) -> None:
+        self.centre: FloatArray = np.ascontiguousarray(centre, dtype=np.float64)
+        self.width_left: FloatArray = np.ascontiguousarray(widths[:, 0], dtype=np.float64)
+        self.width_right: FloatArray = np.ascontiguousarray(widths[:, 1], dtype=np.float64)
+        self.tangents: FloatArray = np.ascontiguousarray(tangents, dtype=np.float64)
+        self.curvature: FloatArray = np.ascontiguousarray(curvature, dtype=np.float64)
+        for arr in (self.centre, self.width_left, self.width_right, self.tangents, self.curvature):
+            arr.flags.writeable = False
+
+    # ---- derived arrays -------------------------------------------------------------------
+
+    @property
+    def n_points(self) -> int:
+        """Number of centre-line points N."""
+        return len(self.centre)
+
+    @cached_property
+    def segment_lengths(self) -> FloatArray:
+        """(N,) m: length of segment ``i -> i+1`` (the last closes the loop)."""
+        return np.linalg.norm(np.roll(self.centre, -1, axis=0) - self.centre, axis=1)
+
+    @cached_property
+    def s(self) -> FloatArray:
+        """(N,) m: progress at each centre-line point; ``s[0] == 0`` is the start line."""
+        return np.concatenate([[0.0], np.cumsum(self.segment_lengths)[:-1]])
+
+    @cached_property
+    def length(self) -> float:
+        """Lap length along the centre line, m."""
+        return float(self.segment_lengths.sum())
+
+    @cached_property
+    def normals(self) -> FloatArray:
+        """(N, 2) unit normals pointing to the left of the driving direction."""
+        return np.stack([-self.tangents[:, 1], self.tangents[:, 0]], axis=1)
+
+    @cached_property
+    def headings(self) -> FloatArray:
+        """(N,) rad: heading of the centre line at each point."""
+        return np.arctan2(self.tangents[:, 1], self.tangents[:, 0])
+
+    @cached_property
+    def left_border(self) -> FloatArray:
+        """(N, 2) m: the left road edge."""
+        return self.centre + self.width_left[:, None] * self.normals
+
+    @cached_property
+    def right_border(self) -> FloatArray:
+        """(N, 2) m: the right road edge."""
+        return self.centre - self.width_right[:, None] * self.normals
+
+    @cached_property
+    def width(self) -> FloatArray:
+        """(N,) m: full road width."""
+        return self.width_left + self.width_right
+
+    @cached_property
+    def orientation(self) -> Literal["ccw", "cw"]:
+        """Direction of travel seen from above: anticlockwise or clockwise."""
+        return "ccw" if signed_area(self.centre) > 0 else "cw"
+
+    @cached_property
+    def bounds(self) -> tuple[float, float, float, float]:
+        """(xmin, ymin, xmax, ymax) m of both borders."""
+        both = np.vstack([self.left_border, self.right_border])
+        lo, hi = both.min(axis=0), both.max(axis=0)
+        return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
+
+    @cached_property
+    def _tree(self) -> cKDTree:
+        return cKDTree(self.centre)
+
+    def __repr__(self) -> str:
+        return (
+            f"Track({self.name!r}, length={self.length:.1f} m, points={self.n_points}, "
+            f"width={self.width.min():.2f}-{self.width.max():.2f} m, {self.orientation})"
+        )
+
+    # ---- progress arithmetic --------------------------------------------------------------
+
+    def wrap_s(self, s: ArrayLike) -> FloatArray:
+        """Progress folded into ``[0, length)``, m."""
+        return np.mod(np.asarray(s, dtype=np.float64), self.length)
+
+    def delta_s(self, s_to: ArrayLike, s_from: ArrayLike) -> FloatArray:
+        """Signed shortest progress from ``s_from`` to ``s_to``, m in ``[-L/2, L/2)``."""
+        half = 0.5 * self.length
+        diff = np.asarray(s_to, dtype=np.float64) - np.asarray(s_from, dtype=np.float64)
+        return np.mod(diff + half, self.length) - half
+
+    def _locate(self, s: ArrayLike) -> tuple[IntArray, FloatArray]:
+        """Segment index and fraction ``t`` in [0, 1) for progress values."""
+        sw = self.wrap_s(s)
+        i = np.clip(np.searchsorted(self.s, sw, side="right") - 1, 0, self.n_points - 1)
+        t = (sw - self.s[i]) / self.segment_lengths[i]
+        return i.astype(np.int64), t
+
+    def widths_at(self, s: ArrayLike) -> tuple[FloatArray, FloatArray]:
+        """Left and right half-widths at progress ``s`` (linear between points), m."""
+        i, t = self._locate(s)
+        j = (i + 1) % self.n_points
+        left = (1 - t) * self.width_left[i] + t * self.width_left[j]
+        right = (1 - t) * self.width_right[i] + t * self.width_right[j]
+        return left, right
+
+    def heading_at(self, s: ArrayLike) -> FloatArray:
+        """Heading of the centre line at progress ``s``, rad."""
+        i, t = self._locate(s)
+        tan = (1 - t)[..., None] * self.tangents[i] + t[..., None] * self.tangents[
+            (i + 1) % self.n_points
+        ]
+        return np.arctan2(tan[..., 1], tan[..., 0])
+
+    def curvature_at(self, s: ArrayLike) -> FloatArray:
+        """Signed curvature at progress ``s``, 1/m (positive turns left)."""
+        i, t = self._locate(s)
+        return (1 - t) * self.curvature[i] + t * self.curvature[(i + 1) % self.n_points]
+
+    # ---- Cartesian <-> Frenet -------------------------------------------------------------
+
+    def to_cartesian(self, frenet: ArrayLike) -> FloatArray:
+        """Frenet (M, 2) [s m, d m] → Cartesian (M, 2) [x m, y m]; exact inverse of ``project``."""
+        f = _as_points(frenet, "frenet coordinates")
+        i, t = self._locate(f[:, 0])
+        j = (i + 1) % self.n_points
+        tt = t[:, None]
+        base = self.centre[i] + tt * (self.centre[j] - self.centre[i])
+        normal = self.normals[i] + tt * (self.normals[j] - self.normals[i])
+        return base + f[:, 1:2] * normal
+
+    @cached_property
+    def _frame(self) -> tuple[FloatArray, ...]:
+        """Per-segment constants of the projection quadratic, each (N,), structure of arrays.
+
+        ``cx, cy`` segment start; ``nx, ny`` start normal; ``ex, ey`` segment vector; ``dnx,
+        dny`` normal change along the segment; ``qa = -e × dn``; ``en = e × n0``.
+        """
+        c, nrm = self.centre, self.normals
+        e = np.roll(c, -1, axis=0) - c
+        dn = np.roll(nrm, -1, axis=0) - nrm
+        cols = (c[:, 0], c[:, 1], nrm[:, 0], nrm[:, 1], e[:, 0], e[:, 1], dn[:, 0], dn[:, 1])
+        qa = -_cross(e, dn)
+        en = _cross(e, nrm)
+        return (*(np.ascontiguousarray(a) for a in cols), qa, en)
+
+    def project(self, points: ArrayLike) -> Projection:
+        """Project (M, 2) points [x m, y m] onto the centre line.
+
+        Vectorised over points: candidate segments are those next to the two nearest
+        centre-line vertices; on each, the interpolated-normal frame gives a quadratic in the
+        segment fraction ``t``; the valid solution with the smallest ``|d|`` wins. Points are
+        processed in blocks of ``_PROJECT_BLOCK`` so the temporaries stay in the CPU cache.
+        """
+        p = _as_points(points)
+        m, n = len(p), self.n_points
+        seg = np.empty(m, dtype=np.int64)
+        tb = np.empty(m)
+        db = np.empty(m)
+        for lo in range(0, m, _PROJECT_BLOCK):
+            hi = min(lo + _PROJECT_BLOCK, m)
+            seg[lo:hi], tb[lo:hi], db[lo:hi] = self._project_block(p[lo:hi])
+        s = self.wrap_s(self.s[seg] + tb * self.segment_lengths[seg])
+        tan = self.tangents[seg] + tb[:, None] * (self.tangents[(seg + 1) % n] - self.tangents[seg])
+        heading = np.arctan2(tan[:, 1], tan[:, 0])
+        return Projection(s=s, d=db, heading=heading, segment=seg)
+
+    def _project_block(self, p: FloatArray) -> tuple[IntArray, FloatArray, FloatArray]:
+        """Segment index (M,), fraction ``t`` (M,) in [0, 1] and offset ``d`` (M,) m of points.
+
+        Scalar (x, y) arrays of shape (M, C) over C candidate segments rather than (M, C, 2)
+        stacks: no strided last-axis access, and most operations run in place.
+        """
+        n = self.n_points
+        k = min(2, n)
+        _, nearest = self._tree.query(p, k=k)
+        nearest = np.asarray(nearest).reshape(len(p), k)
+        cand = np.concatenate([nearest, nearest - 1], axis=1) % n  # (M, 2k) segment indices
+        cx, cy, nx, ny, ex, ey, dnx, dny, qa, en = (a[cand] for a in self._frame)
+        qx = p[:, :1] - cx  # q = p - c0, (M, C)
+        qy = p[:, 1:] - cy
+        c = qx * ny
+        c -= qy * nx  # q × n0
+        b = qx * dny
+        b -= qy * dnx
+        b -= en  # q × dn - e × n0
+        disc = b * b
+        disc -= 4.0 * qa * c
+        root = np.sqrt(np.maximum(disc, 0.0))
+        # Root that tends to -c/b as a -> 0 (the other one lies beyond the curvature centre).
+        np.negative(root, out=root, where=b < 0)
+        denom = np.negative(b, out=b)
+        denom -= root
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = np.where(np.abs(denom) > 1e-300, 2.0 * c / denom, 0.0)
+        ntx = t * dnx
+        ntx += nx  # nt = n0 + t dn
+        nty = t * dny
+        nty += ny
+        qx -= t * ex  # q - t e
+        qy -= t * ey
+        d = qx * ntx
+        d += qy * nty
+        ntx *= ntx
+        nty *= nty
+        ntx += nty
+        d /= ntx
+        valid = (disc >= 0) & (t >= -1e-9) & (t <= 1 + 1e-9)
+        cost = np.where(valid, np.abs(d), np.inf)
+        best = np.argmin(cost, axis=1)[:, None]
+        seg = np.take_along_axis(cand, best, axis=1)[:, 0]
+        tb = np.clip(np.take_along_axis(t, best, axis=1)[:, 0], 0.0, 1.0)
+        db = np.take_along_axis(d, best, axis=1)[:, 0]
+        # Far off the road on the inside of a bend no frame solution exists: use the vertex.
+        none = ~np.isfinite(np.take_along_axis(cost, best, axis=1)[:, 0])
+        if np.any(none):
+            v = nearest[none, 0]
+            seg[none] = v
+            tb[none] = 0.0
+            db[none] = np.einsum("mk,mk->m", p[none] - self.centre[v], self.normals[v])
+        return seg, tb, db
+
+    def to_frenet(self, points: ArrayLike) -> FloatArray:
+        """Cartesian (M, 2) [x m, y m] → Frenet (M, 2) [s m, d m]."""
+        proj = self.project(points)
+        return np.stack([proj.s, proj.d], axis=1)
+
+    def signed_distance(self, points: ArrayLike) -> FloatArray:
+        """(M,) m to the nearest road edge, measured across the road: negative on the road."""
+        proj = self.project(points)
+        left, right = self.widths_at(proj.s)
+        return np.maximum(proj.d - left, -proj.d - right)
+
+    def is_inside(self, points: ArrayLike) -> NDArray[np.bool_]:
+        """(M,) True where a point lies on the road surface."""
+        return self.signed_distance(points) <= 0.0
+
+    # ---- race furniture -------------------------------------------------------------------
+
+    def checkpoint_s(self, n: int = DEFAULT_CHECKPOINTS) -> FloatArray:
+        """(n,) m: progress of the ordered lap gates; gate 0 is the start/finish line."""
+        if n < 2:
+            raise TrackError("a lap needs at least 2 checkpoints")
+        return np.arange(n, dtype=np.float64) * (self.length / n)
+
+    def gates(self, s: ArrayLike) -> FloatArray:
+        """(K, 2, 2) m: the left and right ends of a line across the road at each ``s``."""
+        sv = np.atleast_1d(np.asarray(s, dtype=np.float64))
+        left, right = self.widths_at(sv)
+        ends_l = self.to_cartesian(np.stack([sv, left], axis=1))
+        ends_r = self.to_cartesian(np.stack([sv, -right], axis=1))
+        return np.stack([ends_l, ends_r], axis=1)
+
+    def start_grid(
+        self,
+        n_cars: int,
+        *,
+        gap: float = 2 * CAR_LENGTH,
+        setback: float = CAR_LENGTH,
+        offset: float = 0.0,
+    ) -> FloatArray:
+        """Staggered two-wide start grid behind the start line.
+
+        Car 0 (pole) sits on the left half of the road with its front ``setback/2`` m behind
+        the line; each next car is ``gap/2`` m further back on the other side, so cars in the
+        same column are ``gap`` m (about two car lengths) apart. ``offset`` moves the whole
+        grid that many metres along the lap (a start line elsewhere, as DeepRacer trains).
+
+        Returns:
+            (n_cars, 3) poses [x m, y m, yaw rad], pole first.
+        """
+        k = np.arange(n_cars, dtype=np.float64)
+        s = offset - (setback + k * 0.5 * gap)
+        left, right = self.widths_at(s)
+        middle = 0.5 * (left - right)
+        quarter = 0.25 * (left + right)
+        d = middle + np.where(k % 2 == 0, quarter, -quarter)
+        xy = self.to_cartesian(np.stack([self.wrap_s(s), d], axis=1))
+        return np.column_stack([xy, self.heading_at(s)])
+
+    @cached_property
+    def n_corners(self) -> int:
+        """Number of corners: bends tighter than a 12 m radius that turn at least 30 degrees."""
+        tight = np.abs(self.curvature) > CORNER_CURVATURE
+        if tight.all() or not tight.any():
+            return int(tight.all())
+        start = int(np.argmin(tight))  # begin scanning on a straight so runs do not wrap
+        order = np.roll(np.arange(self.n_points), -start)
+        corners, turn = 0, 0.0
+        for i in order:
+            if tight[i]:
+                turn += abs(self.curvature[i]) * self.segment_lengths[i]
+            elif turn > 0.0:
+                corners += int(turn >= CORNER_MIN_TURN)
+                turn = 0.0
+        return corners + int(turn >= CORNER_MIN_TURN)
+
+    def reversed(self) -> Track:
+        """The same road driven the other way: start line kept, left and right swapped."""
+        order = np.roll(np.arange(self.n_points)[::-1], 1)  # index 0 stays the start line
+        rev = Track.__new__(Track)
+        rev.name = f"{self.name}-reversed"
+        rev.description = self.description
+        rev._set_arrays(
+            self.centre[order],
+            np.stack([self.width_right[order], self.width_left[order]], axis=1),
+            -self.tangents[order],
+            -self.curvature[order],
+        )
+        return rev
+
+
+def _polyline_tangents_curvature(c: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Unit tangents (central differences) and curvature (turning angle / length) of a polyline."""
+    fwd = np.roll(c, -1, axis=0) - c
+    back = c - np.roll(c, 1, axis=0)
+    tan = fwd / np.linalg.norm(fwd, axis=1)[:, None] + back / np.linalg.norm(back, axis=1)[:, None]
+    tan /= np.linalg.norm(tan, axis=1)[:, None]
+    turn = np.arctan2(_cross(back, fwd), np.einsum("ij,ij->i", back, fwd))
+    ds = 0.5 * (np.linalg.norm(fwd, axis=1) + np.linalg.norm(back, axis=1))
+    return tan, turn / ds

@@ -1,0 +1,81 @@
+"""The built-in track library and name resolution.
+
+A track can be named three ways wherever the project takes a track: a built-in name
+(``tracks/data/<name>.json``), a path to a track file (JSON, F1TENTH ``.csv``, DeepRacer
+``.npy``), or ``random:<seed>[:length=<m>,difficulty=<0..1>]`` for a procedurally generated
+circuit (the same one for the same seed and parameters).
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+
+from tracks.errors import TrackError
+from tracks.formats import read_json, read_track_file
+from tracks.geometry import Track
+
+DATA_DIR = Path(__file__).parent / "data"
+RANDOM_PREFIX = "random:"
+
+
+def list_tracks() -> list[str]:
+    """Names of the built-in tracks, sorted."""
+    return sorted(p.stem for p in DATA_DIR.glob("*.json"))
+
+
+@lru_cache(maxsize=64)
+def _load_builtin(name: str) -> Track:
+    return read_json(DATA_DIR / f"{name}.json")
+
+
+def parse_random_spec(spec: str) -> tuple[int, dict[str, float]]:
+    """Split ``random:<seed>[:key=value,...]`` into the seed and generator keyword arguments."""
+    body = spec[len(RANDOM_PREFIX) :]
+    seed_text, _, opts = body.partition(":")
+    try:
+        seed = int(seed_text)
+    except ValueError:
+        raise TrackError(f"bad random track {spec!r}: the seed must be an integer") from None
+    params: dict[str, float] = {}
+    for item in filter(None, opts.split(",")):
+        key, eq, value = item.partition("=")
+        if not eq or key not in ("length", "difficulty"):
+            raise TrackError(
+                f"bad random track option {item!r}; use length=<m> and/or difficulty=<0..1>"
+            )
+        try:
+            params[key] = float(value)
+        except ValueError:
+            raise TrackError(f"bad random track option {item!r}: not a number") from None
+    return seed, params
+
+
+@lru_cache(maxsize=64)
+def _load_random(spec: str) -> Track:
+    from tracks.generator import generate_track  # noqa: PLC0415 (only for random: tracks)
+
+    seed, params = parse_random_spec(spec)
+    return generate_track(seed, **params)
+
+
+def load_track(track: str | Path | Track) -> Track:
+    """Resolve a built-in name, a file path, ``random:<seed>`` or a :class:`Track` to a Track.
+
+    Raises:
+        TrackError: the name is unknown, the file is missing or malformed.
+    """
+    if isinstance(track, Track):
+        return track
+    text = str(track)
+    if text.startswith(RANDOM_PREFIX):
+        return _load_random(text)
+    if isinstance(track, str) and text in list_tracks():
+        return _load_builtin(text)
+    path = Path(text)
+    if path.suffix or path.exists():
+        return read_track_file(path)
+    known = ", ".join(list_tracks()) or "none installed"
+    raise TrackError(
+        f"unknown track {text!r}; built-in tracks: {known}; or a file path, or random:<seed>"
+    )
