@@ -81,7 +81,9 @@ class PursuitPolicy:
         v = float(ego[0]) * p.max_speed
         pts = obs[lay.track_ahead].astype(np.float64).reshape(-1, 2) * self.max_range
         ld = min(max(0.8 + 0.3 * v, self.dist[0]), 4.0)
-        target = np.array([np.interp(ld, self.dist, pts[:, 0]), np.interp(ld, self.dist, pts[:, 1])])
+        target = np.array(
+            [np.interp(ld, self.dist, pts[:, 0]), np.interp(ld, self.dist, pts[:, 1])]
+        )
         dist = max(float(np.hypot(*target)), 1e-3)
         alpha = math.atan2(target[1], target[0])
         steer = math.atan(2.0 * p.wheelbase * math.sin(alpha) / dist)
@@ -94,8 +96,11 @@ class PursuitPolicy:
         """Fastest speed from which every corner in the preview can still be taken, m/s."""
         chain = np.vstack([[0.0, 0.0], pts])
         a, b, c = chain[:-2], chain[1:-1], chain[2:]
-        ab, bc, ca = (np.linalg.norm(b - a, axis=1), np.linalg.norm(c - b, axis=1),
-                      np.linalg.norm(a - c, axis=1))
+        ab, bc, ca = (
+            np.linalg.norm(b - a, axis=1),
+            np.linalg.norm(c - b, axis=1),
+            np.linalg.norm(a - c, axis=1),
+        )
         cross = np.abs((b - a)[:, 0] * (c - a)[:, 1] - (b - a)[:, 1] * (c - a)[:, 0])
         kappa = 2.0 * cross / np.maximum(ab * bc * ca, 1e-9)  # Menger curvature, 1/m
         allowed = np.sqrt(self.a_lat / np.maximum(kappa, 1e-6))
@@ -124,8 +129,14 @@ class GapFollowerPolicy:
     """
 
     def __init__(
-        self, layout: ObservationLayout, params: CarParams | None = None, *, name: str = "gap",
-        fov: float = DEFAULT_FOV, max_range: float = DEFAULT_RANGE, bubble: float = 0.35,
+        self,
+        layout: ObservationLayout,
+        params: CarParams | None = None,
+        *,
+        name: str = "gap",
+        fov: float = DEFAULT_FOV,
+        max_range: float = DEFAULT_RANGE,
+        bubble: float = 0.35,
     ) -> None:
         self.name = name
         self.layout = layout
@@ -160,7 +171,9 @@ class GapFollowerPolicy:
 
 
 def make_baseline(
-    name: str, layout: ObservationLayout, params: CarParams | None = None,
+    name: str,
+    layout: ObservationLayout,
+    params: CarParams | None = None,
     seed: int | None = None,
 ) -> RandomPolicy | PursuitPolicy | GapFollowerPolicy:
     """A baseline policy by name: ``pursuit``, ``gap`` or ``random``."""

@@ -12,6 +12,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from pettingzoo.utils.conversions import parallel_to_aec
+
 from arena.env import ENV_VERSION, RacingEnv
 from arena.sim import CarParams, SimError
 
@@ -23,8 +25,6 @@ def parallel_env(**kwargs: Any) -> RacingEnv:
 
 def env(**kwargs: Any) -> Any:
     """The same environment under PettingZoo's AEC API (``parallel_to_aec``)."""
-    from pettingzoo.utils.conversions import parallel_to_aec
-
     return parallel_to_aec(RacingEnv(**kwargs))
 
 

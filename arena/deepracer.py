@@ -64,8 +64,9 @@ class DeepRacerParams:
             max(behind, key=lambda k: gaps[k]) if behind else (ahead[-1] if ahead else 0),
             min(ahead, key=lambda k: gaps[k]) if ahead else (behind[0] if behind else 0),
         ]
-        in_camera = any(0 <= g <= 5.0 and abs(d[others[k]] - d[i]) < 1.0
-                        for k, g in enumerate(gaps))
+        in_camera = any(
+            0 <= g <= 5.0 and abs(d[others[k]] - d[i]) < 1.0 for k, g in enumerate(gaps)
+        )
         return {
             "all_wheels_on_track": bool(all_wheels_on[i]),
             "x": float(poses[i, 0]),

@@ -33,7 +33,7 @@ from arena.observations import (
 )
 from arena.render import TopDownRenderer
 from arena.rewards import RewardWeights, collision_blame, race_positions, racing_terms
-from arena.sim import CarParams, Simulator, SimError, SimState
+from arena.sim import CarParams, SimError, SimState, Simulator
 from arena.walls import DEFAULT_RUNOFF, Walls
 from tracks import LapCounter, Track, load_track
 
@@ -47,7 +47,7 @@ CUT_JUMP = 3.0  # m: a larger jump in progress in one control step is a cut, not
 Obs = NDArray[np.float32] | NDArray[np.uint8] | dict[str, NDArray[np.float32]]
 
 
-class RacingEnv(ParallelEnv):  # type: ignore[misc]
+class RacingEnv(ParallelEnv):
     """Several Ackermann cars racing on one track.
 
     ====================  ===========================================================
@@ -70,8 +70,9 @@ class RacingEnv(ParallelEnv):  # type: ignore[misc]
     7 ``[dx, dy]`` points in the car's frame, and the ``k_opponents`` nearest cars as
     ``[present, dx, dy, dvx, dvy]`` in the car's frame; layout in
     :mod:`arena.observations`. ``"dict"``: the same, named (``lidar``, the ego feature
-    names, ``track_ahead`` (7, 2), ``opponents`` (k, 5)). ``"image"``: a 160×120 grayscale ego camera (uint8,
-    (120, 160, 1)), rendered headless with pybullet's TinyRenderer — slower.
+    names, ``track_ahead`` (7, 2), ``opponents`` (k, 5)). ``"image"``: a 160×120
+    grayscale ego camera (uint8, (120, 160, 1)), rendered headless with pybullet's
+    TinyRenderer — slower.
 
     **Rewards.** ``"racing"`` (default) = progress (metres along the centre line; negative
     backwards) − off-track (1/s) − wall contact (2/s) − collision (0.5 × closing speed in
@@ -102,7 +103,7 @@ class RacingEnv(ParallelEnv):  # type: ignore[misc]
     ``wall_contact``, ``reward_terms``, ``speed``, ``dnf_reason`` when a car stops early.
 
     **Arguments.** ``track`` (built-in name, file path, ``random:<seed>`` or a ``Track``),
-    ``n_cars`` (4), ``laps`` (1), ``control_hz`` (20), ``physics_hz`` (100), ``obs_mode``,
+    ``n_cars`` (4), ``laps`` (1), ``control_hz`` (20), ``physics_hz`` (60), ``obs_mode``,
     ``action_mode``, ``lidar_rays`` (64), ``k_opponents`` (3), ``discrete_actions``
     ((5, 2)), ``reward``, ``reward_weights``, ``max_cycles``, ``render_mode``
     (None or ``"rgb_array"``: top-down image), ``off_track_limit`` (3 s), ``stuck_time``
@@ -115,7 +116,7 @@ class RacingEnv(ParallelEnv):  # type: ignore[misc]
     >>> env = RacingEnv(track="oval", n_cars=2)
     >>> obs, infos = env.reset(seed=0)
     >>> obs["car_0"].shape
-    (95,)
+    (100,)
     >>> env.close()
     """
 
@@ -133,7 +134,7 @@ class RacingEnv(ParallelEnv):  # type: ignore[misc]
         laps: int = 1,
         *,
         control_hz: int = 20,
-        physics_hz: int = 100,
+        physics_hz: int = 60,
         obs_mode: ObsMode = "vector",
         action_mode: ActionMode = "continuous",
         lidar_rays: int = 64,
@@ -172,8 +173,13 @@ class RacingEnv(ParallelEnv):  # type: ignore[misc]
         self.stuck_time = stuck_time
         self.runoff = runoff
         self.sim = Simulator(
-            self.base_track, n_cars, params=car_params, physics_hz=physics_hz,
-            control_hz=control_hz, runoff=runoff, visuals=obs_mode == "image",
+            self.base_track,
+            n_cars,
+            params=car_params,
+            physics_hz=physics_hz,
+            control_hz=control_hz,
+            runoff=runoff,
+            visuals=obs_mode == "image",
         )
         self.params = self.sim.params
         self.control_hz = control_hz
@@ -182,9 +188,7 @@ class RacingEnv(ParallelEnv):  # type: ignore[misc]
         self._lookahead = np.asarray(LOOKAHEAD)
         self.discrete = DiscreteActions(*discrete_actions, top_speed=self.params.top_speed)
         self.race_distance = laps * self.base_track.length
-        self.max_cycles = max_cycles or math.ceil(
-            (5.0 + self.race_distance / 2.5) * control_hz
-        )
+        self.max_cycles = max_cycles or math.ceil((5.0 + self.race_distance / 2.5) * control_hz)
         self.possible_agents = [f"car_{i}" for i in range(n_cars)]
         self.agent_index = {a: i for i, a in enumerate(self.possible_agents)}
         self.agents: list[str] = []
@@ -302,9 +306,7 @@ class RacingEnv(ParallelEnv):  # type: ignore[misc]
         self.state = state
         obs = self._observations(state, proj.segment, proj.d, self._heading_error(state, proj))
         zero_terms = {k: 0.0 for k in ("progress", "off_track", "wall", "collision", "overtake")}
-        infos = {
-            a: self._info(i, [], False, False, zero_terms) for i, a in enumerate(self.agents)
-        }
+        infos = {a: self._info(i, [], False, False, zero_terms) for i, a in enumerate(self.agents)}
         self._last_proj = proj
         return {a: obs[i] for i, a in enumerate(self.agents)}, infos
 
@@ -325,8 +327,9 @@ class RacingEnv(ParallelEnv):  # type: ignore[misc]
             a = np.asarray(act, dtype=np.float64).reshape(-1)
             if a.shape != (2,):
                 raise SimError(f"action for {agent} must have shape (2,), got {a.shape}")
-            cmd[self.agent_index[agent]] = np.nan_to_num(a, nan=0.0, posinf=1.0, neginf=-1.0)
-        cmd = np.clip(cmd, -1.0, 1.0) * self.active[:, None]
+            cmd[self.agent_index[agent]] = a
+        # NaN means "no input"; ±inf saturate. The env never lets a bad number into physics.
+        cmd = np.clip(np.where(np.isnan(cmd), 0.0, cmd), -1.0, 1.0) * self.active[:, None]
         return cmd[:, 0], cmd[:, 1]
 
     def step(
@@ -345,7 +348,7 @@ class RacingEnv(ParallelEnv):  # type: ignore[misc]
         state = self.sim.step(steer, throttle)
         self.steps += 1
         now = state.time
-        track, n = self.track, self.n_cars
+        track = self.track
         active = self.active
 
         proj = track.project(state.poses[:, :2])
@@ -398,8 +401,14 @@ class RacingEnv(ParallelEnv):  # type: ignore[misc]
             self.dnf_reason[i] = "timeout"
 
         terms = racing_terms(
-            progress, off_track, state.wall_contact & active, at_fault, closing, gained,
-            self.dt, self.weights,
+            progress,
+            off_track,
+            state.wall_contact & active,
+            at_fault,
+            closing,
+            gained,
+            self.dt,
+            self.weights,
         )
         obs = self._observations(state, proj.segment, proj.d, heading_error)
         rewards = self._rewards(terms, state, proj, heading_error, off_track, contact)
@@ -410,22 +419,25 @@ class RacingEnv(ParallelEnv):  # type: ignore[misc]
         result_trunc: dict[str, bool] = {}
         infos: dict[str, dict[str, Any]] = {}
         for agent in self.agents:
-            i = self.agent_index[agent]
-            result_obs[agent] = obs[i]
-            result_rew[agent] = float(rewards[i])
-            result_term[agent] = bool(terminated[i])
-            result_trunc[agent] = bool(truncated[i])
+            k = self.agent_index[agent]
+            result_obs[agent] = obs[k]
+            result_rew[agent] = float(rewards[k])
+            result_term[agent] = bool(terminated[k])
+            result_trunc[agent] = bool(truncated[k])
             events = [
                 {
                     "with": self.possible_agents[j],
-                    "at_fault": bool(at_fault[i, j]),
-                    "closing_speed": float(closing[i, j]),
+                    "at_fault": bool(at_fault[k, j]),
+                    "closing_speed": float(closing[k, j]),
                 }
-                for j in np.flatnonzero(contact[i])
+                for j in np.flatnonzero(contact[k])
             ]
             infos[agent] = self._info(
-                i, events, bool(off_track[i]), bool(state.wall_contact[i]),
-                {k: float(v[i]) for k, v in terms.items()},
+                k,
+                events,
+                bool(off_track[k]),
+                bool(state.wall_contact[k]),
+                {name: float(v[k]) for name, v in terms.items()},
             )
         done = terminated | truncated
         for i in np.flatnonzero(done):
@@ -435,6 +447,16 @@ class RacingEnv(ParallelEnv):  # type: ignore[misc]
         self.state = state
         self._last_proj = proj
         return result_obs, result_rew, result_term, result_trunc, infos
+
+    def retire(self, agent: str, reason: str) -> None:
+        """Take ``agent`` out of the race now (DNF with ``reason``), e.g. its policy failed."""
+        if agent not in self.agents:
+            raise SimError(f"{agent} is not racing")
+        i = self.agent_index[agent]
+        self.dnf_reason[i] = reason
+        self.active[i] = False
+        self.sim.park(i)
+        self.agents = [a for a in self.agents if a != agent]
 
     # ---- pieces ---------------------------------------------------------------------------
 
@@ -452,8 +474,8 @@ class RacingEnv(ParallelEnv):  # type: ignore[misc]
         wheel_d = d[:, None] + wx * sin + wy * cos  # lateral offset of each wheel, m
         left, right = self.track.widths_at(s)
         on = (wheel_d <= left[:, None]) & (wheel_d >= -right[:, None])
-        self._all_wheels_on = on.all(axis=1)
-        return ~on.any(axis=1)
+        self._all_wheels_on: NDArray[np.bool_] = np.all(on, axis=1)
+        return np.logical_not(np.any(on, axis=1))
 
     def _observations(
         self,
@@ -473,12 +495,25 @@ class RacingEnv(ParallelEnv):  # type: ignore[misc]
         course = np.arctan2(state.velocity[:, 1], state.velocity[:, 0])
         along = speed * np.cos(course - (state.poses[:, 2] - heading_error))
         ego = ego_features(
-            state.v_long, state.v_lat, state.steering, state.velocity[:, 2], heading_error,
-            d, left, right, along, p.max_speed, p.max_steer,
+            state.v_long,
+            state.v_lat,
+            state.steering,
+            state.velocity[:, 2],
+            heading_error,
+            d,
+            left,
+            right,
+            along,
+            p.max_speed,
+            p.max_steer,
         )
         opp = opponent_features(
-            state.poses, state.velocity, self.active, self.layout.k_opponents,
-            self.lidar.max_range, p.max_speed,
+            state.poses,
+            state.velocity,
+            self.active,
+            self.layout.k_opponents,
+            self.lidar.max_range,
+            p.max_speed,
         )
         ahead_s = (self._s[:, None] + self._lookahead).ravel()
         points = self.track.to_cartesian(np.stack([ahead_s, np.zeros_like(ahead_s)], axis=1))
@@ -519,11 +554,20 @@ class RacingEnv(ParallelEnv):  # type: ignore[misc]
         out = np.zeros(self.n_cars)
         for i in np.flatnonzero(self.active):
             params = self._deepracer.build(
-                int(i), poses=state.poses, speed=state.v_long, steering=state.steering,
-                s=proj.s, d=proj.d, segment=proj.segment, heading_error=heading_error,
-                race_progress=self.race_progress, all_wheels_on=self._all_wheels_on,
-                off_track=off_track, crashed=contact.any(axis=1) | state.wall_contact,
-                present=self.active, steps=self.steps,
+                int(i),
+                poses=state.poses,
+                speed=state.v_long,
+                steering=state.steering,
+                s=proj.s,
+                d=proj.d,
+                segment=proj.segment,
+                heading_error=heading_error,
+                race_progress=self.race_progress,
+                all_wheels_on=self._all_wheels_on,
+                off_track=off_track,
+                crashed=contact.any(axis=1) | state.wall_contact,
+                present=self.active,
+                steps=self.steps,
             )
             out[i] = float(fn(params))
         terms["deepracer"] = out
@@ -562,8 +606,9 @@ class RacingEnv(ParallelEnv):  # type: ignore[misc]
         if self.render_mode is None:
             return None
         if self._renderer is None:
-            self._renderer = TopDownRenderer(self.base_track, Walls.around(self.base_track,
-                                                                           self.runoff))
+            self._renderer = TopDownRenderer(
+                self.base_track, Walls.around(self.base_track, self.runoff)
+            )
         return self._renderer.render(self.sim.corners(self.state.poses), self.active)
 
     def close(self) -> None:

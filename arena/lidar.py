@@ -38,7 +38,10 @@ class Lidar:
     """
 
     def __init__(
-        self, walls: Walls, n_rays: int = 64, fov: float = DEFAULT_FOV,
+        self,
+        walls: Walls,
+        n_rays: int = 64,
+        fov: float = DEFAULT_FOV,
         max_range: float = DEFAULT_RANGE,
     ) -> None:
         if n_rays < 1 or not 0 < fov <= 2 * math.pi or max_range <= 0:
@@ -49,7 +52,7 @@ class Lidar:
         self.max_range = max_range
         self.step = fov / n_rays if fov >= 2 * math.pi else fov / max(n_rays - 1, 1)
         self.first = -0.5 * fov
-        self.angles: FloatArray = self.first + self.step * np.arange(n_rays)
+        self.angles: FloatArray = self.first + self.step * np.arange(n_rays, dtype=np.float64)
         self.dirs: FloatArray = np.stack([np.cos(self.angles), np.sin(self.angles)], axis=1)
         spacing = float(np.mean(np.linalg.norm(np.diff(walls.left, axis=0), axis=1)))
         self.half_window = math.ceil(1.5 * max_range / spacing) + 1

@@ -15,8 +15,14 @@ ROAD = (70, 70, 74)
 WALL = (235, 235, 235)
 START = (255, 255, 255)
 CAR_COLOURS = (
-    (230, 57, 70), (29, 120, 214), (255, 183, 3), (42, 157, 143),
-    (155, 93, 229), (244, 132, 95), (6, 214, 160), (239, 71, 111),
+    (230, 57, 70),
+    (29, 120, 214),
+    (255, 183, 3),
+    (42, 157, 143),
+    (155, 93, 229),
+    (244, 132, 95),
+    (6, 214, 160),
+    (239, 71, 111),
 )
 
 
@@ -42,9 +48,7 @@ class TopDownRenderer:
         self.origin = lo
         img = Image.new("RGB", (size, size), GROUND)
         draw = ImageDraw.Draw(img)
-        loops = sorted(
-            (track.left_border, track.right_border), key=lambda b: -abs(signed_area(b))
-        )
+        loops = sorted((track.left_border, track.right_border), key=lambda b: -abs(signed_area(b)))
         draw.polygon(self._px(loops[0]), fill=ROAD)
         draw.polygon(self._px(loops[1]), fill=GROUND)
         for wall in (walls.left, walls.right):

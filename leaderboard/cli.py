@@ -19,6 +19,7 @@ EXIT_USER_ERROR = 2
 
 def build_parser() -> argparse.ArgumentParser:
     """The full argument parser with every package's subcommands."""
+    from agents import cli as agents_cli
     from tracks import cli as tracks_cli
 
     parser = argparse.ArgumentParser(
@@ -26,7 +27,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Multi-agent autonomous racing: tracks, races, training, evaluation.",
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for module in (tracks_cli,):
+    for module in (tracks_cli, agents_cli):
         module.register(sub)
     return parser
 

@@ -124,25 +124,35 @@ def cmd_list(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.table import Table
 
-    table = Table(title=f"Slipstream built-in tracks ({len(rows)})")
-    table.add_column("name", style="bold")
-    table.add_column("length m", justify="right")
-    table.add_column("min width m", justify="right")
-    table.add_column("max width m", justify="right")
-    table.add_column("corners", justify="right")
-    table.add_column("direction")
-    table.add_column("description")
-    for r in rows:
-        table.add_row(
+    cells = [
+        [
             r["name"],
             f"{r['length_m']:.1f}",
-            f"{r['min_width_m']:.2f}",
-            f"{r['max_width_m']:.2f}",
+            f"{r['min_width_m']:.2f}-{r['max_width_m']:.2f}",
             str(r["corners"]),
             r["direction"],
-            r["description"],
-        )
-    Console().print(table)
+        ]
+        for r in rows
+    ]
+    # One line per track: the numbers keep their width; the description is cut to fit what is
+    # left of the terminal (``--json`` has it in full).
+    console = Console()
+    table = Table(title=f"Slipstream built-in tracks ({len(rows)})")
+    headers = ("name", "length m", "width m", "corners", "dir")
+    used = 1  # the table's left border; each column adds 1 + 2 padding + 1 border
+    for k, header in enumerate(headers):
+        width = max([len(header), *(len(c[k]) for c in cells)])
+        table.add_column(header, justify="left" if k in (0, 4) else "right", min_width=width)
+        used += width + 3
+    table.add_column(
+        "description",
+        no_wrap=True,
+        overflow="ellipsis",
+        max_width=max(12, console.width - used - 3),
+    )
+    for c, r in zip(cells, rows, strict=True):
+        table.add_row(*c, r["description"])
+    console.print(table)
     return 0
 
 

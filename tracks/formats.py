@@ -26,6 +26,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import zipfile
 from pathlib import Path
 from typing import Any, Literal
 
@@ -184,8 +185,10 @@ def read_deepracer(path: Path, name: str | None = None, direction: str = "ccw") 
     raw = _read_bytes(path)
     try:
         arr = np.load(io.BytesIO(raw), allow_pickle=False)
-    except (ValueError, OSError) as err:
+    except (ValueError, OSError, EOFError, zipfile.BadZipFile) as err:  # empty, truncated, junk
         raise TrackError(f"{path}: not a numpy .npy array ({err})") from None
+    if not isinstance(arr, np.ndarray):  # np.load opens an .npz archive instead
+        raise TrackError(f"{path}: not a numpy .npy array (an .npz archive of several arrays)")
     if arr.ndim != 2 or arr.shape[1] != 6 or not np.issubdtype(arr.dtype, np.number):
         raise TrackError(
             f"{path}: expected an (N, 6) numeric array of centre, inner and outer points, "

@@ -1,4 +1,4 @@
-"""Procedural race tracks: a closed, smooth, non-self-intersecting circuit from a seed.
+"""Procedural race tracks: a closed, non-self-intersecting circuit from a seed.
 
 ``generate_track(seed, length, difficulty)`` always returns the same track for the same
 arguments (it draws only from ``numpy.random.default_rng``), and the library resolves
@@ -6,30 +6,42 @@ arguments (it draws only from ``numpy.random.default_rng``), and the library res
 
 How a circuit is made:
 
-1. Corner points: ``n`` angles spread evenly round a circle with random jitter (kept sorted),
-   each at a random radius, so the polygon is star-shaped and cannot cross itself. ``n`` grows
-   with the lap length and the difficulty (about one corner every 20 m at difficulty 0, every
-   9 m at difficulty 1), and so does the spread of the radii: harder tracks have more and
-   tighter corners.
-2. Midpoint displacement: a point is added halfway along each edge, pushed sideways by a random
-   fraction of the edge (none at difficulty 0). The periodic spline through the points then
-   follows the edges as straights and rounds the corners.
-3. Scale: the spline is scaled so the lap is ``length`` metres (scaling is exact for a chord-
-   length spline, so the lap length matches to a fraction of a millimetre per metre).
-4. Checks: the road, made 30% wider than it will be, must pass
-   :func:`tracks.validation.validate_track`; that keeps every radius of curvature at least 1.3
-   inner half-widths and leaves grass between parts of the road that pass close to each other.
-   The start line goes at the end of the straightest 7 m of the lap, and an 8-car grid must
-   fit behind it.
-5. A shape that fails a check is drawn again from the sub-seed ``(seed, attempt)``, at most
-   ``MAX_ATTEMPTS`` times; then :class:`TrackError` is raised.
+1. Corner points: ``n`` angles spread evenly round a circle with random jitter (so they stay
+   sorted), each at a random radius: a star-shaped polygon, which cannot cross itself.
+2. Midpoint displacement: a vertex is added halfway along each edge and pushed sideways by a
+   random fraction of the edge, which makes kinks, esses and concave bends.
+3. Straights and bends: every vertex is rounded with a circular arc of random radius, entered
+   and left along the polygon edges, so the lap is straights joined by constant-radius bends.
+   The polygon is scaled so that the lap is ``length`` metres long, and driven anticlockwise
+   or clockwise at random.
+4. The path is sampled every metre or so and handed to :class:`Track` (periodic spline).
+5. Checks: the road, made 30% wider than it will be, must pass
+   :func:`tracks.validation.validate_track` (so every radius of curvature is at least 1.3
+   inner half-widths, and parts of the road that pass close to each other keep grass between
+   them). The start line goes where the 6 m behind it and the 1 m after it are straightest,
+   and an 8-car grid must fit behind it.
+6. A shape that fails is first calmed: blended step by step into a regular polygon with wide
+   bends (short laps need it: a 30 m lap has no room for many corners). If even that fails, a
+   new shape is drawn from the sub-seed ``(seed, attempt)``, at most ``MAX_ATTEMPTS`` times,
+   and then :class:`TrackError` is raised.
 
-The total road width falls linearly from 4 m at difficulty 0 to 2 m at difficulty 1.
+Difficulty, from 0 to 1, sets how twisty the lap is and how narrow the road:
+
+================  ====================  ====================
+quantity          difficulty 0          difficulty 1
+================  ====================  ====================
+corner points     one per 28 m of lap   one per 12 m of lap
+radial spread     up to 25% inwards     up to 55% inwards
+midpoint shift    ±5% of the edge       ±35% of the edge
+bend radii        1.7 half-widths–15 m  1.7 half-widths–4 m
+road width        4 m                   2 m
+================  ====================  ====================
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -43,28 +55,31 @@ DEFAULT_LENGTH = 80.0  # m
 DEFAULT_DIFFICULTY = 0.5
 WIDTH_EASY = 4.0  # m of total road width at difficulty 0
 WIDTH_HARD = 2.0  # m of total road width at difficulty 1
-CORNER_GAP_EASY = 20.0  # m of lap per corner point at difficulty 0
-CORNER_GAP_HARD = 9.0  # m of lap per corner point at difficulty 1
-MIN_CORNER_POINTS = 5
-RADIUS_SPREAD_EASY = 0.15  # corner radii vary by ±15% of the mean at difficulty 0 ...
-RADIUS_SPREAD_HARD = 0.45  # ... and by ±45% at difficulty 1
-ANGLE_JITTER = 0.4  # a corner point moves at most this fraction of its sector
-MIDPOINT_SHIFT_HARD = 0.2  # sideways midpoint shift, fraction of the edge, at difficulty 1
+CORNER_GAP = (28.0, 12.0)  # m of lap per corner point (difficulty 0, difficulty 1)
+MIN_CORNERS = 4  # fewest corner points (before midpoints are added)
+ANGLE_JITTER = 0.35  # a corner point moves at most this fraction of its sector
+RADIAL_SPREAD = (0.25, 0.55)  # corner points lie at (1 - spread .. 1) x the mean radius
+MIDPOINT_SHIFT = (0.05, 0.35)  # sideways midpoint shift, fraction of the edge
+BEND_RADIUS_MAX = (15.0, 4.0)  # m: largest bend radius drawn
+BEND_RADIUS_MIN = 1.7  # half-widths: smallest bend radius (the spline tightens it by ~15%)
 SAFETY = 1.3  # checks run on a road this much wider (radius and clearance margin)
+ARC_STEP = 0.5  # m between samples on a bend
+STRAIGHT_STEP = 1.0  # m between samples on a straight
+CALMING = (0.0, 0.25, 0.5, 0.75, 1.0)  # blends towards a regular polygon, tried in turn
 GRID_CARS = 8  # the start grid that must fit
 GRID_WINDOW = (6.0, 1.0)  # m behind / ahead of the start line that should be straight
-MAX_SMOOTHING = 12  # smoothing passes before a shape is given up
-SMOOTHING_STEP = 0.5  # how far a point moves towards its neighbours' mean per pass
-MAX_ATTEMPTS = 100
+MAX_ATTEMPTS = 20  # fresh shapes (each tried at every calming level) before giving up
 
 
-def _lerp(easy: float, hard: float, difficulty: float) -> float:
+def _lerp(range_: tuple[float, float], difficulty: float) -> float:
+    """The value for ``difficulty`` between the (easy, hard) ends of a range."""
+    easy, hard = range_
     return easy + (hard - easy) * difficulty
 
 
 def road_width(difficulty: float) -> float:
     """Total road width in metres for a difficulty in [0, 1]: 4 m down to 2 m."""
-    return _lerp(WIDTH_EASY, WIDTH_HARD, difficulty)
+    return _lerp((WIDTH_EASY, WIDTH_HARD), difficulty)
 
 
 def random_spec(seed: int, length: float, difficulty: float) -> str:
@@ -101,19 +116,108 @@ def _check_arguments(seed: int, length: float, difficulty: float) -> None:
         raise TrackError(f"random track difficulty must be between 0 and 1, got {difficulty:g}")
 
 
-def _control_points(rng: np.random.Generator, length: float, difficulty: float) -> FloatArray:
-    """(2n, 2) control points of a star-shaped circuit, anticlockwise, about unit size."""
-    n = max(MIN_CORNER_POINTS, round(length / _lerp(CORNER_GAP_EASY, CORNER_GAP_HARD, difficulty)))
-    sector = 2.0 * math.pi / n
-    angles = (np.arange(n) + rng.uniform(-ANGLE_JITTER, ANGLE_JITTER, n)) * sector
-    spread = _lerp(RADIUS_SPREAD_EASY, RADIUS_SPREAD_HARD, difficulty)
-    radii = 1.0 + spread * rng.uniform(-1.0, 1.0, n)
-    corners = radii[:, None] * np.stack([np.cos(angles), np.sin(angles)], axis=1)
-    edges = np.roll(corners, -1, axis=0) - corners
-    normals = np.stack([-edges[:, 1], edges[:, 0]], axis=1)  # edge-length long
-    shift = MIDPOINT_SHIFT_HARD * difficulty * rng.uniform(-1.0, 1.0, n)
-    middles = corners + 0.5 * edges + shift[:, None] * normals
-    return np.stack([corners, middles], axis=1).reshape(-1, 2)
+@dataclass(frozen=True)
+class _Shape:
+    """The random draws behind one circuit polygon (each array has shape (n,)).
+
+    Attributes:
+        jitter: angle of each corner point, fraction of its sector off the even spacing.
+        spread: how far in each corner point lies, fraction of the unit radius.
+        shift: sideways shift of each edge midpoint, fraction of the edge length.
+        bends: (2n,) where each vertex's bend radius lies between the smallest and largest.
+        clockwise: drive the circuit clockwise.
+    """
+
+    jitter: FloatArray
+    spread: FloatArray
+    shift: FloatArray
+    bends: FloatArray
+    clockwise: bool
+
+    @classmethod
+    def draw(cls, rng: np.random.Generator, length: float, difficulty: float) -> _Shape:
+        n = max(MIN_CORNERS, round(length / _lerp(CORNER_GAP, difficulty)))
+        return cls(
+            jitter=rng.uniform(-ANGLE_JITTER, ANGLE_JITTER, n),
+            spread=_lerp(RADIAL_SPREAD, difficulty) * rng.uniform(0.0, 1.0, n),
+            shift=_lerp(MIDPOINT_SHIFT, difficulty) * rng.uniform(-1.0, 1.0, n),
+            bends=rng.uniform(0.0, 1.0, 2 * n),
+            clockwise=bool(rng.integers(2)),
+        )
+
+    def polygon(self, calm: float) -> FloatArray:
+        """(2n, 2) vertices, anticlockwise, about unit radius; ``calm`` in [0, 1] blends the
+        random shape into a regular polygon (which always has room for its bends)."""
+        n = len(self.jitter)
+        keep = 1.0 - calm
+        angles = (np.arange(n) + keep * self.jitter) * (2.0 * math.pi / n)
+        radii = 1.0 - keep * self.spread
+        corners = radii[:, None] * np.stack([np.cos(angles), np.sin(angles)], axis=1)
+        edges = np.roll(corners, -1, axis=0) - corners
+        normals = np.stack([-edges[:, 1], edges[:, 0]], axis=1)  # edge-length long, leftwards
+        middles = corners + 0.5 * edges + (keep * self.shift)[:, None] * normals
+        return np.stack([corners, middles], axis=1).reshape(-1, 2)
+
+
+def _fit_bends(
+    vertices: FloatArray, radii: FloatArray, length: float, min_radius: float
+) -> tuple[float, FloatArray] | None:
+    """Scale for the polygon and bend radii (m) so the rounded lap is ``length`` m long.
+
+    Rounding a vertex that turns by ``theta`` with radius ``R`` cuts ``t = R tan(theta/2)``
+    off both edges and shortens the lap by ``2t - R theta``, so for fixed radii the lap length
+    is linear in the scale. Radii whose cuts do not fit on an edge are reduced (not below
+    ``min_radius``); None when the polygon is too sharp for that.
+    """
+    incoming = vertices - np.roll(vertices, 1, axis=0)
+    outgoing = np.roll(incoming, -1, axis=0)  # edge i runs from vertex i to vertex i+1
+    turn = np.abs(np.arctan2(_cross(incoming, outgoing), np.einsum("ij,ij->i", incoming, outgoing)))
+    edge = np.linalg.norm(outgoing, axis=1)
+    perimeter = float(edge.sum())
+    radii = radii.copy()
+    for _ in range(20):
+        cut = radii * np.tan(0.5 * turn)
+        scale = (length + float(np.sum(2.0 * cut - radii * turn))) / perimeter
+        need = cut + np.roll(cut, -1)  # metres taken off edge i by its two bends
+        room = 0.98 * scale * edge / np.maximum(need, 1e-12)
+        if (room >= 1.0).all():
+            return scale, radii
+        shrink = np.minimum(room, np.roll(room, 1))  # a vertex has two edges
+        # Overshoot a little: shrinking exactly to fit only approaches the fit.
+        radii = np.maximum(min_radius, radii * np.where(shrink < 1.0, 0.95 * shrink, 1.0))
+    return None
+
+
+def _cross(a: FloatArray, b: FloatArray) -> FloatArray:
+    return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+
+
+def _rounded_path(vertices: FloatArray, radii: FloatArray) -> FloatArray:
+    """(M, 2) points along the polygon (m) with each vertex rounded by a circular arc."""
+    incoming = vertices - np.roll(vertices, 1, axis=0)
+    u_in = incoming / np.linalg.norm(incoming, axis=1)[:, None]
+    u_out = np.roll(u_in, -1, axis=0)
+    turn = np.arctan2(_cross(u_in, u_out), np.einsum("ij,ij->i", u_in, u_out))
+    cut = radii * np.tan(0.5 * np.abs(turn))
+    arc_start = vertices - cut[:, None] * u_in
+    arc_end = vertices + cut[:, None] * u_out
+    pieces = []
+    for i in range(len(vertices)):
+        # Bend: from arc_start round the centre on the inside of the turn.
+        to_centre = np.array([-u_in[i, 1], u_in[i, 0]]) * math.copysign(radii[i], turn[i])
+        spoke = -to_centre  # centre -> arc_start, rotated by the turn as the bend goes round
+        arc = radii[i] * abs(turn[i])
+        steps = math.ceil(arc / ARC_STEP) if arc > 0.01 * ARC_STEP else 0  # none if no turn
+        phi = turn[i] * np.arange(steps) / steps
+        cos, sin = np.cos(phi)[:, None], np.sin(phi)[:, None]
+        perp = np.array([-spoke[1], spoke[0]])
+        pieces.append(arc_start[i] + to_centre + cos * spoke + sin * perp)
+        # Straight: from the end of this bend to the start of the next.
+        nxt = arc_start[(i + 1) % len(vertices)]
+        run = float(np.linalg.norm(nxt - arc_end[i]))
+        steps = math.ceil(run / STRAIGHT_STEP) if run > 0.1 * ARC_STEP else 0
+        pieces.append(arc_end[i] + np.outer(np.arange(steps) / max(steps, 1), nxt - arc_end[i]))
+    return np.vstack(pieces)
 
 
 def _straightest_start(track: Track) -> float:
@@ -127,28 +231,29 @@ def _straightest_start(track: Track) -> float:
     return float(track.s[int(np.argmin(peak))])
 
 
-def _smoothed(points: FloatArray) -> FloatArray:
-    """One pass of Laplacian smoothing of a closed polygon (N, 2): rounds its sharpest corners."""
-    neighbours = 0.5 * (np.roll(points, 1, axis=0) + np.roll(points, -1, axis=0))
-    return points + SMOOTHING_STEP * (neighbours - points)
-
-
-def _attempt(
-    rng: np.random.Generator, seed: int, length: float, difficulty: float
-) -> Track | None:
-    """One candidate circuit, or None when it fails a check even after smoothing."""
+def _attempt(rng: np.random.Generator, seed: int, length: float, difficulty: float) -> Track | None:
+    """One candidate circuit, or None when it fails a check even when calmed down."""
     half = 0.5 * road_width(difficulty)
-    raw = _control_points(rng, length, difficulty)
-    for _ in range(MAX_SMOOTHING + 1):
-        raw *= length / (2.0 * math.pi * np.linalg.norm(raw, axis=1).mean())
-        probe = Track(raw, half, half, validate=False)
-        points = raw * (length / probe.length)
+    shape = _Shape.draw(rng, length, difficulty)
+    min_radius = BEND_RADIUS_MIN * half
+    max_radius = max(_lerp(BEND_RADIUS_MAX, difficulty), 1.2 * min_radius)
+    for calm in CALMING:
+        vertices = shape.polygon(calm)
+        spread = shape.bends + calm * (1.0 - shape.bends)  # calmer: wider bends
+        fit = _fit_bends(
+            vertices, min_radius + (max_radius - min_radius) * spread, length, min_radius
+        )
+        if fit is None:
+            continue
+        points = _rounded_path(fit[0] * vertices, fit[1])
+        if shape.clockwise:
+            points = points[::-1]
+        points *= length / Track(points, half, half, validate=False).length  # spline vs arcs
         # Checks on a wider road keep radius and clearance margins; the centre line is the same.
         wide = Track(points, SAFETY * half, SAFETY * half, validate=False)
         try:
             validate_track(wide)
         except TrackError:
-            raw = _smoothed(points)  # a bend too tight or two parts too close: round it off
             continue
         track = Track(
             points,
@@ -161,7 +266,8 @@ def _attempt(
             ),
             start_s=_straightest_start(wide),
         )
-        return track if grid_fits(track, GRID_CARS) else None
+        if grid_fits(track, GRID_CARS):
+            return track
     return None
 
 

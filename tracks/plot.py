@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 from matplotlib.collections import LineCollection, PolyCollection
 from matplotlib.figure import Figure
-from matplotlib.patches import FancyArrow, PathPatch
+from matplotlib.patches import PathPatch
 from matplotlib.path import Path as MplPath
 
 from tracks.errors import TrackError
@@ -152,35 +152,45 @@ def plot_track(
     for k, (gate, out_dir) in enumerate(zip(gates, across, strict=True)):
         x, y = gate[0] + label_off * out_dir
         ax.text(
-            x, y, "S/F" if k == 0 else str(k), ha="center", va="center", fontsize=8,
-            fontweight="bold", zorder=7,
+            x,
+            y,
+            "S/F" if k == 0 else str(k),
+            ha="center",
+            va="center",
+            fontsize=8,
+            fontweight="bold",
+            zorder=7,
             bbox={"boxstyle": "round,pad=0.15", "fc": "white", "ec": GATE_COLOUR, "lw": 0.8},
-        )  # fmt: skip
+        )
 
     polys, colours = _chequers(track)
     ax.add_collection(
         PolyCollection(polys, facecolors=colours, edgecolors="black", linewidths=0.3, zorder=5)
     )
 
-    # Driving direction: an arrow along the centre line a little way after the start.
-    arrow_len = min(0.08 * extent, 0.1 * track.length)
-    s_tail = min(0.03 * track.length + 2.0, 0.25 * track.length)
-    tail, head = track.to_cartesian(np.array([[s_tail, 0.0], [s_tail + arrow_len, 0.0]]))
-    ax.add_patch(
-        FancyArrow(
-            *tail, *(head - tail), width=0.25 * float(track.width.min()),
-            length_includes_head=True, head_width=0.7 * float(track.width.min()),
-            head_length=0.35 * arrow_len, color="black", zorder=6, label="direction",
-        )
-    )  # fmt: skip
+    # Driving direction: an arrow that follows the centre line for a stretch after the start.
+    s_arrow = np.linspace(1.0, 1.0 + min(0.12 * extent, 0.12 * track.length), 40)
+    body = track.to_cartesian(np.column_stack([s_arrow, np.zeros_like(s_arrow)]))
+    ax.plot(*body[:-2].T, color="black", lw=5, solid_capstyle="butt", zorder=6)
+    ax.annotate(
+        "",
+        xy=tuple(body[-1]),
+        xytext=tuple(body[-3]),
+        arrowprops={"arrowstyle": "-|>", "mutation_scale": 32, "color": "black", "lw": 0},
+        zorder=6,
+    )
+    ax.plot([], [], color="black", lw=3.5, marker=">", markersize=7, label="direction")
 
     cars = _car_outlines(track.start_grid(GRID_CARS))
     ax.add_collection(
         PolyCollection(
-            cars, facecolors=[CAR_COLOURS[i % len(CAR_COLOURS)] for i in range(len(cars))],
-            edgecolors="black", linewidths=0.6, zorder=6,
+            cars,
+            facecolors=[CAR_COLOURS[i % len(CAR_COLOURS)] for i in range(len(cars))],
+            edgecolors="black",
+            linewidths=0.6,
+            zorder=6,
         )
-    )  # fmt: skip
+    )
 
     ax.set_aspect("equal")
     ax.set_xlim(xmin - margin, xmax + margin)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from numpy.typing import ArrayLike
 
 from tests.tracks.builders import circle_points, stadium, stadium_points, wavy_stadium
 from tracks import Track, TrackError, list_tracks, load_track
@@ -14,7 +15,7 @@ STRAIGHT, RADIUS, SPACING = 30.0, 10.0, 0.05  # the hand-made polyline stadium, 
 WL, WR = 2.0, 1.5  # its half-widths, m
 
 
-def angle_diff(a: FloatArray, b: FloatArray) -> FloatArray:
+def angle_diff(a: ArrayLike, b: ArrayLike) -> FloatArray:
     """Smallest signed difference of angles, rad."""
     return np.angle(np.exp(1j * (np.asarray(a) - np.asarray(b))))
 
@@ -135,9 +136,9 @@ def test_signed_distance_and_is_inside(polyline: Track) -> None:
     np.testing.assert_allclose(polyline.signed_distance(on_centre), -min(WL, WR), atol=1e-9)
     assert polyline.is_inside(on_centre).all()
 
-    beyond_left = on_centre + [0.0, WL + 0.3]
-    beyond_right = on_centre - [0.0, WR + 0.2]
-    just_inside = on_centre + [0.0, WL - 1e-6]
+    beyond_left = on_centre + np.array([0.0, WL + 0.3])
+    beyond_right = on_centre - np.array([0.0, WR + 0.2])
+    just_inside = on_centre + np.array([0.0, WL - 1e-6])
     np.testing.assert_allclose(polyline.signed_distance(beyond_left), 0.3, atol=1e-9)
     np.testing.assert_allclose(polyline.signed_distance(beyond_right), 0.2, atol=1e-9)
     assert not polyline.is_inside(beyond_left).any()

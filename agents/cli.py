@@ -1,0 +1,136 @@
+"""``slipstream race``: a local head-to-head race between baselines and checkpoints."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+from tracks.errors import SlipstreamError
+
+
+def register(sub: Any) -> None:
+    """Add ``race`` to the ``slipstream`` subcommands."""
+    p = sub.add_parser(
+        "race",
+        help="race baselines and checkpoints head to head",
+        description=(
+            "Race policies on one track: each agent is a baseline name (pursuit, gap, "
+            "random) or a checkpoint path. Shows a progress bar, then the results table."
+        ),
+    )
+    p.add_argument("--track", default="oval", help="built-in name, file or random:<seed>")
+    p.add_argument(
+        "--agents", default="pursuit,gap", help="comma-separated baselines or checkpoint paths"
+    )
+    p.add_argument("--laps", type=int, default=2, help="race distance in laps")
+    p.add_argument("--seed", type=int, default=0, help="seed for the grid and the policies")
+    p.add_argument(
+        "--grid",
+        choices=["fixed", "random"],
+        default="fixed",
+        help="grid order: as listed (fixed) or shuffled by the seed",
+    )
+    p.add_argument(
+        "--ranked",
+        action="store_true",
+        help="DeepRacer penalties: +2 s per off-track, +5 s per at-fault collision",
+    )
+    p.add_argument(
+        "--json",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="write the result JSON here ('-' for stdout)",
+    )
+    p.add_argument(
+        "--replay",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="write the replay log (.replay.json.gz) here",
+    )
+    p.add_argument(
+        "--trusted",
+        action="store_true",
+        help="allow SB3/TorchScript files, which run code when loaded (your own only)",
+    )
+    p.set_defaults(handler=race_command)
+
+
+def race_command(args: argparse.Namespace) -> int:
+    """Run ``slipstream race``."""
+    from rich.console import Console
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from agents.loading import load_policy
+    from arena.race import run_race
+
+    names = [a.strip() for a in args.agents.split(",") if a.strip()]
+    if not 1 <= len(names) <= 16:
+        raise SlipstreamError("--agents takes 1 to 16 comma-separated agents")
+    policies = [load_policy(n, trusted=args.trusted) for n in names]
+    for i, pol in enumerate(policies):  # same baseline twice: tell them apart in the table
+        if names.count(names[i]) > 1:
+            pol.name = f"{pol.name}#{i}"
+    to_stdout = args.json is not None and str(args.json) == "-"
+    console = Console(stderr=to_stdout)
+    with Progress(
+        TextColumn("[bold]racing[/] {task.description}"),
+        BarColumn(),
+        TextColumn("{task.completed}/{task.total} steps"),
+        TimeElapsedColumn(),
+        console=console,
+        transient=True,
+    ) as bar:
+        task = bar.add_task(f"{args.track}, {args.laps} laps", total=None)
+
+        def progress(step: int, total: int) -> None:
+            bar.update(task, completed=step, total=total)
+
+        result, replay = run_race(
+            policies,
+            track=args.track,
+            laps=args.laps,
+            seed=args.seed,
+            ranked=args.ranked,
+            grid_order="random" if args.grid == "random" else None,
+            progress=progress,
+            record=args.replay is not None,
+        )
+    console.print(results_table(result.to_dict()))
+    if args.replay is not None and replay is not None:
+        replay.save(args.replay)
+        console.print(f"replay written to {args.replay}")
+    if args.json is not None:
+        if to_stdout:
+            sys.stdout.write(result.to_json() + "\n")
+        else:
+            result.to_json(args.json)
+            console.print(f"results written to {args.json}")
+    return 0
+
+
+def results_table(result: dict[str, Any]) -> Any:
+    """A rich table of a race result dict (positions, laps, best lap, time, penalties)."""
+    from rich.table import Table
+
+    table = Table(
+        title=f"{result['track']} · {result['laps']} laps · seed {result['seed']}"
+        + (" · ranked" if result["ranked"] else "")
+    )
+    for col in ("pos", "name", "laps", "best lap", "total time", "penalties", "status"):
+        table.add_column(col, justify="left" if col in ("name", "status") else "right")
+    for car in sorted(result["cars"], key=lambda c: c["position"]):
+        status = car["status"] if car["status"] == "finished" else f"dnf ({car['dnf_reason']})"
+        table.add_row(
+            str(car["position"]),
+            car["name"],
+            str(car["laps_completed"]),
+            f"{car['best_lap']:.2f} s" if car["best_lap"] is not None else "–",
+            f"{car['total_time']:.2f} s" if car["total_time"] is not None else "–",
+            f"{car['penalties']:.0f} s" if car["penalties"] else "",
+            status,
+        )
+    return table

@@ -1,0 +1,305 @@
+"""A whole race with policies: grid, laps, lap times, finishing order, results and a replay.
+
+Finishing order: cars that complete the race distance, by total time (race time plus, in
+ranked races, DeepRacer's penalties: +2 s per off-track excursion and +5 s per collision the
+car was to blame for); then the cars that did not finish, by laps completed and distance.
+A policy that raises leaves the race as ``dnf`` with reason ``error``; one that returns an
+action of the wrong shape or a non-finite number, with reason ``invalid``. The race goes on.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+
+from arena.env import ENV_VERSION, RacingEnv
+from arena.render import car_colour
+from arena.replay import ReplayLog
+from tracks import Track
+
+OFF_TRACK_PENALTY = 2.0  # s per off-track excursion in ranked races (DeepRacer)
+COLLISION_PENALTY = 5.0  # s per at-fault collision in ranked races (DeepRacer)
+ProgressFn = Callable[[int, int], None]
+
+
+@runtime_checkable
+class Policy(Protocol):
+    """Something that drives one car: ``reset(seed)`` before a race, ``act(obs)`` each step."""
+
+    name: str
+
+    def reset(self, seed: int | None = None) -> None:
+        """Prepare for a new race."""
+        ...
+
+    def act(self, obs: Any) -> Any:
+        """The action for one observation."""
+        ...
+
+
+@dataclass
+class CarResult:
+    """One car's race (times in seconds of simulated time)."""
+
+    agent: str
+    name: str
+    position: int
+    status: str  # "finished" or "dnf"
+    dnf_reason: str | None
+    laps_completed: int
+    lap_times: list[float]
+    best_lap: float | None
+    total_time: float | None
+    race_time: float | None
+    penalties: float
+    collisions: int
+    at_fault_collisions: int
+    off_track: int
+    distance: float
+
+
+@dataclass
+class RaceResult:
+    """The result of a race; ``to_json`` gives the document other parts read."""
+
+    track: str
+    seed: int
+    laps: int
+    env_version: str
+    ranked: bool
+    steps: int
+    sim_time: float
+    cars: list[CarResult] = field(default_factory=list)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON-able dict."""
+        return asdict(self)
+
+    def to_json(self, path: Path | None = None) -> str:
+        """JSON text, also written to ``path`` when given."""
+        text = json.dumps(self.to_dict(), indent=2)
+        if path is not None:
+            path.write_text(text + "\n", encoding="utf-8")
+        return text
+
+    def by_position(self) -> list[CarResult]:
+        """Cars in finishing order."""
+        return sorted(self.cars, key=lambda c: c.position)
+
+
+def _bad_action(action: Any, space_shape: tuple[int, ...] | None) -> bool:
+    arr = np.asarray(action)
+    if not np.issubdtype(arr.dtype, np.number):
+        return True
+    if space_shape is not None and arr.shape != space_shape:
+        return True
+    return not bool(np.all(np.isfinite(arr)))
+
+
+def run_race(
+    policies: Sequence[Policy],
+    *,
+    track: str | Path | Track = "oval",
+    laps: int = 1,
+    seed: int = 0,
+    ranked: bool = False,
+    grid_order: Sequence[int] | str | None = None,
+    progress: ProgressFn | None = None,
+    record: bool = True,
+    env_kwargs: dict[str, Any] | None = None,
+) -> tuple[RaceResult, ReplayLog | None]:
+    """Race ``policies`` (car ``i`` is driven by ``policies[i]``) and return the result.
+
+    Args:
+        policies: one per car, 1–16.
+        track: anything :func:`tracks.load_track` takes.
+        laps: race distance in laps.
+        seed: seeds the env (grid, noise) and each policy (``seed + i``).
+        ranked: add DeepRacer time penalties.
+        grid_order: car indices pole first, ``"random"`` (seeded), or None for 0, 1, 2…
+        progress: called as ``progress(step, max_steps)`` after every step.
+        record: also build a replay log.
+        env_kwargs: extra :class:`RacingEnv` arguments.
+    """
+    env = RacingEnv(track=track, n_cars=len(policies), laps=laps, **(env_kwargs or {}))
+    try:
+        return _race(env, policies, laps, seed, ranked, grid_order, progress, record)
+    finally:
+        env.close()
+
+
+def _race(
+    env: RacingEnv,
+    policies: Sequence[Policy],
+    laps: int,
+    seed: int,
+    ranked: bool,
+    grid_order: Sequence[int] | str | None,
+    progress: ProgressFn | None,
+    record: bool,
+) -> tuple[RaceResult, ReplayLog | None]:
+    options: dict[str, Any] = {}
+    if grid_order is not None:
+        options["grid_order"] = grid_order if isinstance(grid_order, str) else list(grid_order)
+    obs, _ = env.reset(seed=seed, options=options)
+    agents = list(env.possible_agents)
+    for i, pol in enumerate(policies):
+        pol.reset(seed + i)
+    names = [getattr(p, "name", type(p).__name__) for p in policies]
+    replay = None
+    if record:
+        replay = ReplayLog(
+            track=env.track,
+            dt=env.dt,
+            cars=[
+                {"agent": a, "name": names[i], "colour": list(car_colour(i))}
+                for i, a in enumerate(agents)
+            ],
+            env_version=ENV_VERSION,
+        )
+        _frame(env, replay, 0.0)
+    recorder = _EventRecorder(replay) if replay is not None else None
+    shape = env.action_space(agents[0]).shape
+    while env.agents:
+        actions: dict[str, Any] = {}
+        for agent in list(env.agents):
+            i = env.agent_index[agent]
+            try:
+                act = policies[i].act(obs[agent])
+            except Exception as err:  # a policy's bug must not stop the race
+                _retire(env, replay, agent, "error", detail=f"{type(err).__name__}: {err}")
+                continue
+            if _bad_action(act, shape):
+                _retire(env, replay, agent, "invalid")
+                continue
+            actions[agent] = act
+        if not env.agents:
+            break
+        obs, _, term, trunc, infos = env.step(actions)
+        now = env.state.time
+        if replay is not None and recorder is not None:
+            recorder.record(now, infos, term, trunc)
+            _frame(env, replay, now)
+        if progress is not None:
+            progress(env.steps, env.max_cycles)
+    return _result(env, names, laps, seed, ranked), replay
+
+
+def _retire(
+    env: RacingEnv, replay: ReplayLog | None, agent: str, reason: str, detail: str = ""
+) -> None:
+    env.retire(agent, reason)
+    if replay is not None:
+        extra = {"detail": detail} if detail else {}
+        replay.add_event(env.state.time, "dnf", agent, reason=reason, **extra)
+
+
+def _frame(env: RacingEnv, replay: ReplayLog, t: float) -> None:
+    st = env.state
+    replay.add_frame(t, st.poses, st.steering, st.v_long, env.active)
+
+
+@dataclass
+class _EventRecorder:
+    """Turns per-step infos into replay events (lap counts and off-track edges)."""
+
+    replay: ReplayLog
+    laps_seen: dict[str, int] = field(default_factory=dict)
+    was_off: dict[str, bool] = field(default_factory=dict)
+
+    def record(
+        self,
+        now: float,
+        infos: dict[str, dict[str, Any]],
+        term: dict[str, bool],
+        trunc: dict[str, bool],
+    ) -> None:
+        replay = self.replay
+        for agent, info in infos.items():
+            laps = info["lap_times"]
+            if len(laps) > self.laps_seen.get(agent, 0):
+                replay.add_event(now, "lap", agent, lap=len(laps), lap_time=round(laps[-1], 4))
+                self.laps_seen[agent] = len(laps)
+            for hit in info["collisions"]:
+                replay.add_event(
+                    now,
+                    "collision",
+                    agent,
+                    other=hit["with"],
+                    at_fault=hit["at_fault"],
+                    closing_speed=round(hit["closing_speed"], 3),
+                )
+            if info["off_track"] and not self.was_off.get(agent, False):
+                replay.add_event(now, "off_track", agent)
+            self.was_off[agent] = info["off_track"]
+            if term.get(agent) or trunc.get(agent):
+                reason = info.get("dnf_reason")
+                if reason is None:
+                    replay.add_event(now, "finish", agent)
+                else:
+                    replay.add_event(now, "dnf", agent, reason=reason)
+
+
+def _result(
+    env: RacingEnv,
+    names: list[str],
+    laps: int,
+    seed: int,
+    ranked: bool,
+) -> RaceResult:
+    cars: list[CarResult] = []
+    for i, agent in enumerate(env.possible_agents):
+        finished = bool(env.finished[i])
+        penalties = 0.0
+        if ranked:
+            penalties = OFF_TRACK_PENALTY * int(env.off_track_count[i]) + COLLISION_PENALTY * int(
+                env.at_fault_count[i]
+            )
+        race_time = float(env.finish_time[i]) if finished else None
+        lap_times = [round(t, 4) for t in env.lap_times[i]]
+        cars.append(
+            CarResult(
+                agent=agent,
+                name=names[i],
+                position=0,
+                status="finished" if finished else "dnf",
+                dnf_reason=None if finished else (env.dnf_reason[i] or "timeout"),
+                laps_completed=int(env._counter.laps_completed[i]),
+                lap_times=lap_times,
+                best_lap=min(lap_times) if lap_times else None,
+                total_time=round(race_time + penalties, 4) if race_time is not None else None,
+                race_time=round(race_time, 4) if race_time is not None else None,
+                penalties=penalties,
+                collisions=int(env.collision_count[i]),
+                at_fault_collisions=int(env.at_fault_count[i]),
+                off_track=int(env.off_track_count[i]),
+                distance=round(float(env.race_progress[i]), 3),
+            )
+        )
+    order = sorted(
+        range(len(cars)),
+        key=lambda i: (
+            0 if cars[i].status == "finished" else 1,
+            cars[i].total_time if cars[i].total_time is not None else math.inf,
+            -cars[i].laps_completed,
+            -cars[i].distance,
+        ),
+    )
+    for pos, i in enumerate(order, start=1):
+        cars[i].position = pos
+    return RaceResult(
+        track=env.base_track.name,
+        seed=seed,
+        laps=laps,
+        env_version=ENV_VERSION,
+        ranked=ranked,
+        steps=env.steps,
+        sim_time=round(env.state.time, 4),
+        cars=cars,
+    )
