@@ -30,10 +30,11 @@ from __future__ import annotations
 
 import contextlib
 import math
+import os
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
-import pybullet as pb
 from numpy.typing import NDArray
 
 from arena.walls import DEFAULT_RUNOFF, Walls
@@ -42,6 +43,25 @@ from tracks.errors import SlipstreamError
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
+
+
+def _import_pybullet() -> Any:
+    """Import pybullet with its build banner (printed on stderr) silenced, so that the
+    command line's output and one-line errors stay clean."""
+    saved = os.dup(2)
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 2)
+        import pybullet  # noqa: PLC0415 - imported here to silence its banner
+
+        return pybullet
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(devnull)
+
+
+pb = _import_pybullet()
 
 GRAVITY = 9.81  # m/s²
 WALL_THICKNESS = 0.2  # m
