@@ -121,11 +121,13 @@ class PursuitPolicy:
 
 
 class GapFollowerPolicy:
-    """Follow the gap: steer toward the deepest free lidar direction, speed by free space.
+    """Follow the gap, as the F1TENTH "disparity extender": a purely reactive lidar driver.
 
-    The classic F1TENTH reactive driver: blank out a safety bubble round the nearest return,
-    pick the farthest beam among the front 180°, steer toward it, and slow down when the
-    space straight ahead is short.
+    Where neighbouring beams jump in range (an edge of a wall or a car), the nearer range is
+    extended over the beams a car-width-plus-margin would need to pass, so gaps too narrow
+    to fit through close up; the car then steers toward the farthest remaining beam in the
+    front half (ties: the one nearest straight ahead) and sets its speed from the free space
+    straight ahead. It knows nothing of the track but what the lidar sees.
     """
 
     def __init__(
@@ -136,17 +138,19 @@ class GapFollowerPolicy:
         name: str = "gap",
         fov: float = DEFAULT_FOV,
         max_range: float = DEFAULT_RANGE,
-        bubble: float = 0.35,
+        margin: float = 0.45,
+        disparity: float = 0.3,
     ) -> None:
         self.name = name
         self.layout = layout
         self.params = params or CarParams()
         n = layout.n_rays
-        step = fov / max(n - 1, 1)
-        self.angles = -0.5 * fov + step * np.arange(n)
+        self.step = fov / max(n - 1, 1)
+        self.angles = -0.5 * fov + self.step * np.arange(n)
         self.front = np.abs(self.angles) <= math.pi / 2
         self.max_range = max_range
-        self.bubble = bubble
+        self.half = 0.5 * self.params.width + margin
+        self.disparity = disparity
 
     def reset(self, seed: int | None = None) -> None:
         """Stateless: nothing to reset."""
@@ -155,19 +159,25 @@ class GapFollowerPolicy:
         """[steer, throttle] from one vector observation."""
         p = self.params
         ranges = obs[self.layout.lidar].astype(np.float64) * self.max_range
-        smooth = np.convolve(np.pad(ranges, 2, mode="edge"), np.ones(5) / 5, mode="valid")
-        nearest = int(np.argmin(np.where(self.front, ranges, np.inf)))
-        near_range = max(ranges[nearest], 0.1)
-        halo = math.atan2(self.bubble, near_range)
-        free = np.where(np.abs(self.angles - self.angles[nearest]) < halo, 0.0, smooth)
-        free = np.where(self.front, free, 0.0)
-        best = int(np.argmax(free))
-        steer = float(np.clip(self.angles[best] / p.max_steer * 0.8, -1.0, 1.0))
-        ahead = float(np.min(np.where(np.abs(self.angles) < 0.15, ranges, np.inf)))
+        safe = ranges.copy()
+        jumps = np.flatnonzero(np.abs(np.diff(ranges)) > self.disparity)
+        for k in jumps:  # a handful per scan
+            near_i, far_dir = (k, 1) if ranges[k] < ranges[k + 1] else (k + 1, -1)
+            near = max(ranges[near_i], 0.05)
+            width = math.ceil(math.atan2(self.half, near) / self.step)
+            lo, hi = sorted((near_i, near_i + far_dir * width))
+            lo, hi = max(lo, 0), min(hi, len(safe) - 1)
+            safe[lo : hi + 1] = np.minimum(safe[lo : hi + 1], near)
+        score = np.where(self.front, safe, -1.0) - 1e-3 * np.abs(self.angles)
+        best = int(np.argmax(score))
+        aim = self.angles[best]
+        dist = min(max(safe[best], 0.5), 3.0)
+        steer = math.atan(2.0 * p.wheelbase * math.sin(aim) / dist)
+        ahead = float(np.min(np.where(np.abs(self.angles) < 0.2, safe, np.inf)))
         v = float(obs[self.layout.ego][0]) * p.max_speed
-        v_target = float(np.clip(0.6 * ahead, 1.0, 4.5)) * (1.0 - 0.5 * abs(steer))
+        v_target = float(np.clip(1.2 * ahead - 0.6, 2.0, 6.5))
         throttle = float(np.clip(1.5 * (v_target - v), -1.0, 1.0))
-        return np.array([steer, throttle], dtype=np.float32)
+        return np.array([np.clip(steer / p.max_steer, -1.0, 1.0), throttle], dtype=np.float32)
 
 
 def make_baseline(

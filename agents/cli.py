@@ -58,6 +58,25 @@ def register(sub: Any) -> None:
     )
     p.set_defaults(handler=race_command)
 
+    e = sub.add_parser(
+        "export",
+        help="convert your own stable-baselines3 PPO zip into a safe Slipstream checkpoint",
+        description=(
+            "SB3 zips unpickle code when loaded, so only your own trusted files are accepted "
+            "(--trusted). The result is a zip of meta.json + safetensors that anyone can load "
+            "without running code."
+        ),
+    )
+    e.add_argument("source", type=Path, help="the SB3 PPO .zip")
+    e.add_argument("--out", type=Path, required=True, help="checkpoint to write")
+    e.add_argument("--name", default=None, help="policy name (default: the file stem)")
+    e.add_argument(
+        "--trusted",
+        action="store_true",
+        help="confirm the SB3 file is your own: loading it runs its pickled code",
+    )
+    e.set_defaults(handler=export_command)
+
 
 def race_command(args: argparse.Namespace) -> int:
     """Run ``slipstream race``."""
@@ -109,6 +128,15 @@ def race_command(args: argparse.Namespace) -> int:
         else:
             result.to_json(args.json)
             console.print(f"results written to {args.json}")
+    return 0
+
+
+def export_command(args: argparse.Namespace) -> int:
+    """Run ``slipstream export``."""
+    from agents.loading import convert_sb3
+
+    out = convert_sb3(args.source, args.out, name=args.name, trusted=args.trusted)
+    print(f"wrote {out}")
     return 0
 
 

@@ -78,6 +78,7 @@ CAR_RGB = (
 )
 PARKING_X = 1.0e4  # m: where cars that left the race wait, far from any track
 MAX_COMPOUND_SHAPES = 16  # pybullet's limit on shapes per create*ShapeArray call
+TILT_INERTIA = 1.0e4  # kg m²: a car's roll and pitch inertia, so the box stays flat
 
 
 class SimError(SlipstreamError):
@@ -250,7 +251,7 @@ class Simulator:
         self.client = pb.connect(pb.DIRECT)
         self.scales = CarScales.nominal(n_cars)
         self.steering = np.zeros(n_cars)
-        self.time = 0.0
+        self.substeps_done = 0
         self._build_world()
 
     # ---- world construction ---------------------------------------------------------------
@@ -295,6 +296,7 @@ class Simulator:
                 angularDamping=0.0,
                 physicsClientId=c,
             )
+            self._set_mass(body, p.mass)
             self.cars.append(body)
         self._body_index = {b: i for i, b in enumerate(self.cars)}
         self._inertia_yaw = p.mass * (p.length**2 + p.width**2) / 12.0
@@ -421,10 +423,26 @@ class Simulator:
                 raise SimError(f"CarScales.{name} must have shape ({self.n_cars},)")
         if not np.array_equal(scales.mass, self.scales.mass):
             for body, m in zip(self.cars, scales.mass, strict=True):
-                pb.changeDynamics(
-                    body, -1, mass=float(self.params.mass * m), physicsClientId=self.client
-                )
+                self._set_mass(body, float(self.params.mass * m))
         self.scales = scales
+
+    def _set_mass(self, body: int, mass: float) -> None:
+        """Give car ``body`` a mass, kg, with its box's yaw inertia and locked roll and pitch.
+
+        The tyres act in the plane, so the car must stay flat: a box sliding on pybullet's
+        frictionless ground plane otherwise rocks and sinks into it (the plane contact keeps
+        too few manifold points once the box moves) and a car driving straight slowly yaws.
+        pybullet recomputes the inertia on every mass change, hence both calls here.
+        """
+        p = self.params
+        pb.changeDynamics(body, -1, mass=mass, physicsClientId=self.client)
+        yaw_inertia = mass * (p.length**2 + p.width**2) / 12.0
+        pb.changeDynamics(
+            body,
+            -1,
+            localInertiaDiagonal=[TILT_INERTIA, TILT_INERTIA, yaw_inertia],
+            physicsClientId=self.client,
+        )
 
     # ---- state ----------------------------------------------------------------------------
 
@@ -449,7 +467,7 @@ class Simulator:
             )
             pb.resetBaseVelocity(body, [0, 0, 0], [0, 0, 0], physicsClientId=self.client)
         self.steering = np.zeros(self.n_cars)
-        self.time = 0.0
+        self.substeps_done = 0
         return self._observe(np.zeros(self.n_cars, bool), np.zeros((self.n_cars,) * 2, bool))
 
     def _read(self) -> tuple[FloatArray, FloatArray, FloatArray]:
@@ -513,7 +531,7 @@ class Simulator:
             self.steering += np.clip(target - self.steering, -max_delta, max_delta)
             self._apply_tyre_forces(throttle)
             pb.stepSimulation(physicsClientId=self.client)
-            self.time += self.dt
+            self.substeps_done += 1
             self._collect_contacts(wall, touching)
         return self._observe(wall, touching)
 
@@ -582,6 +600,11 @@ class Simulator:
                 wall[ia] = True
             elif ib is not None and a in walls:
                 wall[ib] = True
+
+    @property
+    def time(self) -> float:
+        """Simulated seconds since reset (counted in substeps, so no rounding drift)."""
+        return self.substeps_done / self.physics_hz
 
     def park(self, i: int) -> None:
         """Take car ``i`` out of the race: moved far off the track and stopped."""
