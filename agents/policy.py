@@ -1,9 +1,12 @@
-"""The Policy protocol every racer implements: baselines, trained checkpoints, submissions."""
+"""The Policy protocol every racer implements: baselines, trained checkpoints, submissions.
+
+The protocol itself lives in :mod:`arena.race` (the race runner is what calls it); it is
+re-exported here so users write ``from agents import Policy``.
+"""
 
 from __future__ import annotations
 
-from typing import Any, Protocol, runtime_checkable
-
+from arena.race import Policy
 from tracks.errors import SlipstreamError
 
 
@@ -11,20 +14,4 @@ class PolicyError(SlipstreamError):
     """A policy could not be built or loaded (unknown name, bad checkpoint)."""
 
 
-@runtime_checkable
-class Policy(Protocol):
-    """Something that drives one car from its observations.
-
-    ``reset(seed)`` is called once before each race; ``act(obs)`` once per control step with
-    that car's observation, returning an action from the env's action space.
-    """
-
-    name: str
-
-    def reset(self, seed: int | None = None) -> None:
-        """Prepare for a new race (clear memory, reseed randomness)."""
-        ...
-
-    def act(self, obs: Any) -> Any:
-        """The action for one observation."""
-        ...
+__all__ = ["Policy", "PolicyError"]
