@@ -27,6 +27,61 @@ OFF_TRACK_PENALTY = 2.0  # s per off-track excursion in ranked races (DeepRacer)
 COLLISION_PENALTY = 5.0  # s per at-fault collision in ranked races (DeepRacer)
 ProgressFn = Callable[[int, int], None]
 
+_NUM_OR_NULL = {"type": ["number", "null"]}
+RESULT_SCHEMA: dict[str, Any] = {
+    "$schema": "https://json-schema.org/draft/2020-12/schema",
+    "title": "Slipstream race result",
+    "type": "object",
+    "required": ["track", "seed", "laps", "env_version", "ranked", "steps", "sim_time", "cars"],
+    "properties": {
+        "track": {"type": "string"},
+        "seed": {"type": "integer"},
+        "laps": {"type": "integer", "minimum": 1},
+        "env_version": {"type": "string"},
+        "ranked": {"type": "boolean"},
+        "steps": {"type": "integer", "minimum": 0},
+        "sim_time": {"type": "number", "minimum": 0},
+        "cars": {
+            "type": "array",
+            "minItems": 1,
+            "items": {
+                "type": "object",
+                "required": [
+                    "agent",
+                    "name",
+                    "position",
+                    "status",
+                    "dnf_reason",
+                    "laps_completed",
+                    "lap_times",
+                    "best_lap",
+                    "total_time",
+                    "collisions",
+                    "at_fault_collisions",
+                    "off_track",
+                ],
+                "properties": {
+                    "agent": {"type": "string", "pattern": "^car_[0-9]+$"},
+                    "name": {"type": "string"},
+                    "position": {"type": "integer", "minimum": 1},
+                    "status": {"enum": ["finished", "dnf"]},
+                    "dnf_reason": {"type": ["string", "null"]},
+                    "laps_completed": {"type": "integer", "minimum": 0},
+                    "lap_times": {"type": "array", "items": {"type": "number", "minimum": 0}},
+                    "best_lap": _NUM_OR_NULL,
+                    "total_time": _NUM_OR_NULL,
+                    "race_time": _NUM_OR_NULL,
+                    "penalties": {"type": "number", "minimum": 0},
+                    "collisions": {"type": "integer", "minimum": 0},
+                    "at_fault_collisions": {"type": "integer", "minimum": 0},
+                    "off_track": {"type": "integer", "minimum": 0},
+                    "distance": {"type": "number"},
+                },
+            },
+        },
+    },
+}
+
 
 @runtime_checkable
 class Policy(Protocol):

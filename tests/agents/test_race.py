@@ -1,0 +1,121 @@
+"""Local races with the baselines: every built-in track, DNFs, the result document, the CLI."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import jsonschema
+import pytest
+
+from agents.baselines import make_baseline
+from arena.observations import ObservationLayout
+from arena.race import RESULT_SCHEMA, run_race
+from arena.sim import CarParams
+from leaderboard.cli import EXIT_USER_ERROR, main
+from tracks import list_tracks, load_track
+
+LAYOUT = ObservationLayout(64, 3)
+
+
+@pytest.mark.parametrize("track", list_tracks())
+def test_four_pursuit_cars_finish_every_builtin_track(track: str) -> None:
+    result, _ = run_race(
+        [make_baseline("pursuit", LAYOUT) for _ in range(4)],
+        track=track,
+        laps=1,
+        seed=0,
+        record=False,
+    )
+    length = load_track(track).length
+    assert sorted(c.position for c in result.cars) == [1, 2, 3, 4]
+    for car in result.cars:
+        assert car.status == "finished", (track, car)
+        assert car.laps_completed == 1
+        (lap,) = car.lap_times
+        # Faster than top speed is impossible; slower than 1.5 m/s on average is not racing.
+        assert length / CarParams().top_speed < lap < length / 1.5
+    # Finishing order follows total time.
+    ordered = result.by_position()
+    times = [c.total_time for c in ordered]
+    assert all(t is not None for t in times)
+    assert times == sorted(times)
+
+
+def test_random_car_ends_dnf_with_a_reason() -> None:
+    result, _ = run_race(
+        [make_baseline("pursuit", LAYOUT), make_baseline("random", LAYOUT, seed=3)],
+        track="oval",
+        laps=1,
+        seed=1,
+        record=False,
+    )
+    by_name = {c.name: c for c in result.cars}
+    assert by_name["pursuit"].status == "finished"
+    assert by_name["pursuit"].position == 1
+    rnd = by_name["random"]
+    assert rnd.status == "dnf"
+    assert rnd.dnf_reason in ("stuck", "off_track", "flipped", "timeout")
+    assert rnd.position == 2
+    assert rnd.total_time is None
+
+
+def test_gap_follower_completes_a_lap() -> None:
+    result, _ = run_race([make_baseline("gap", LAYOUT)], track="bean", laps=1, seed=0, record=False)
+    (car,) = result.cars
+    assert car.status == "finished"
+    assert car.off_track == 0
+
+
+def test_result_json_validates_against_schema(tmp_path: Path) -> None:
+    result, replay = run_race(
+        [make_baseline(n, LAYOUT, seed=2) for n in ("pursuit", "gap", "random")],
+        track="technical",
+        laps=1,
+        seed=4,
+        ranked=True,
+    )
+    out = tmp_path / "result.json"
+    result.to_json(out)
+    doc = json.loads(out.read_text())
+    jsonschema.validate(doc, RESULT_SCHEMA)
+    broken = json.loads(out.read_text())
+    broken["cars"][0]["status"] = "won"
+    with pytest.raises(jsonschema.ValidationError):
+        jsonschema.validate(broken, RESULT_SCHEMA)
+    assert replay is not None
+    assert {e["type"] for e in replay.events} >= {"lap", "finish"}
+
+
+def test_cli_race_table_json_and_replay(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out, rep = tmp_path / "r.json", tmp_path / "r.replay.json.gz"
+    code = main(
+        [
+            "race",
+            "--track",
+            "oval",
+            "--agents",
+            "pursuit,random",
+            "--laps",
+            "1",
+            "--seed",
+            "5",
+            "--json",
+            str(out),
+            "--replay",
+            str(rep),
+        ]
+    )
+    assert code == 0
+    printed = capsys.readouterr().out
+    assert "pursuit" in printed and "finished" in printed
+    doc = json.loads(out.read_text())
+    jsonschema.validate(doc, RESULT_SCHEMA)
+    assert rep.stat().st_size > 0
+
+
+def test_cli_race_bad_agent_is_one_line_error(capsys: pytest.CaptureFixture[str]) -> None:
+    code = main(["race", "--agents", "pursuit,no-such-driver.zip", "--laps", "1"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == EXIT_USER_ERROR
+    assert len(err) == 1 and err[0].startswith("slipstream: error: ")
