@@ -161,7 +161,7 @@ class GapFollowerPolicy:
         ranges = obs[self.layout.lidar].astype(np.float64) * self.max_range
         safe = ranges.copy()
         jumps = np.flatnonzero(np.abs(np.diff(ranges)) > self.disparity)
-        for k in jumps:  # a handful per scan
+        for k in jumps.tolist():  # a handful per scan
             near_i, far_dir = (k, 1) if ranges[k] < ranges[k + 1] else (k + 1, -1)
             near = max(ranges[near_i], 0.05)
             width = math.ceil(math.atan2(self.half, near) / self.step)

@@ -297,6 +297,7 @@ class RacingEnv(ParallelEnv):
         self.dnf_reason: list[str | None] = [None] * n
         self.collision_count = np.zeros(n, dtype=np.int64)
         self.at_fault_count = np.zeros(n, dtype=np.int64)
+        self._contact = np.zeros((n, n), dtype=bool)
         self.off_track_count = np.zeros(n, dtype=np.int64)
         window = max(1, round(self.stuck_time * self.control_hz))
         self._progress_history = np.tile(self.race_progress, (window, 1))
@@ -304,6 +305,7 @@ class RacingEnv(ParallelEnv):
         self.agents = list(self.possible_agents)
         self.positions = race_positions(self.race_progress)
         self.state = state
+        self._widths: tuple[NDArray[np.float64], NDArray[np.float64]] = self.track.widths_at(proj.s)
         obs = self._observations(state, proj.segment, proj.d, self._heading_error(state, proj))
         zero_terms = {k: 0.0 for k in ("progress", "off_track", "wall", "collision", "overtake")}
         infos = {a: self._info(i, [], False, False, zero_terms) for i, a in enumerate(self.agents)}
@@ -368,15 +370,23 @@ class RacingEnv(ParallelEnv):
             self.line_time[i] = now
 
         heading_error = self._heading_error(state, proj)
-        off_track = self._off_track(proj.s, proj.d, heading_error) & active
+        self._widths = track.widths_at(proj.s)  # (left, right) m, for off-track and the obs
+        off_track = self._off_track(proj.d, heading_error) & active
         self.off_time = np.where(off_track, self.off_time + self.dt, 0.0)
         self.off_track_count += (off_track & (self.off_time <= self.dt)).astype(np.int64)
 
         contact = state.car_contact & active[:, None] & active[None, :]
-        at_fault, closing = collision_blame(state.poses, state.velocity, contact)
-        new_contact = contact  # counted per step in contact
+        if contact.any():
+            # Blame from the state before the step: by its end the impact has already evened
+            # out the two cars' speeds, so their closing speed would read about zero.
+            at_fault, closing = collision_blame(self.state.poses, self.state.velocity, contact)
+        else:  # the common case, and the same result without the work
+            at_fault, closing = np.zeros_like(contact), np.zeros(contact.shape)
+        # A collision counts once, when the contact starts: a long push is one incident.
+        new_contact = contact & ~self._contact
+        self._contact = contact
         self.collision_count += new_contact.any(axis=1)
-        self.at_fault_count += at_fault.any(axis=1)
+        self.at_fault_count += (at_fault & new_contact).any(axis=1)
 
         newly_finished = active & (self._counter.laps_completed >= self.laps)
         self.finished |= newly_finished
@@ -386,10 +396,11 @@ class RacingEnv(ParallelEnv):
         gained = np.where(active, self.positions - positions, 0)
         self.positions = positions
 
-        self._progress_history = np.roll(self._progress_history, -1, axis=0)
-        self._progress_history[-1] = self.race_progress
-        moved = self.race_progress - self._progress_history[0]
-        warmed_up = self.steps >= len(self._progress_history)
+        # Ring buffer of the last ``window`` race progresses; row ``steps % window`` is now.
+        window = len(self._progress_history)
+        self._progress_history[self.steps % window] = self.race_progress
+        moved = self.race_progress - self._progress_history[(self.steps + 1) % window]
+        warmed_up = self.steps >= window
         stuck = active & ~newly_finished & warmed_up & (moved < STUCK_DISTANCE)
         flipped = active & ~newly_finished & (state.upright < FLIP_UPRIGHT)
         lost = active & ~newly_finished & (self.off_time > self.off_track_limit)
@@ -418,34 +429,43 @@ class RacingEnv(ParallelEnv):
         result_term: dict[str, bool] = {}
         result_trunc: dict[str, bool] = {}
         infos: dict[str, dict[str, Any]] = {}
+        self.state = state  # before the infos, which report this step's speed
+        self._last_proj = proj
+        # Python scalars once for all cars: per-element numpy indexing is slow.
+        reward_list, term_list, trunc_list = (
+            rewards.tolist(),
+            terminated.tolist(),
+            truncated.tolist(),
+        )
+        off_list, wall_list = off_track.tolist(), state.wall_contact.tolist()
+        term_lists = {name: v.tolist() for name, v in terms.items()}
+        touching: list[bool] = np.any(contact, axis=1).tolist()
         for agent in self.agents:
             k = self.agent_index[agent]
             result_obs[agent] = obs[k]
-            result_rew[agent] = float(rewards[k])
-            result_term[agent] = bool(terminated[k])
-            result_trunc[agent] = bool(truncated[k])
+            result_rew[agent] = reward_list[k]
+            result_term[agent] = term_list[k]
+            result_trunc[agent] = trunc_list[k]
             events = [
                 {
                     "with": self.possible_agents[j],
                     "at_fault": bool(at_fault[k, j]),
                     "closing_speed": float(closing[k, j]),
                 }
-                for j in np.flatnonzero(contact[k])
+                for j in (np.flatnonzero(contact[k]) if touching[k] else ())
             ]
             infos[agent] = self._info(
                 k,
                 events,
-                bool(off_track[k]),
-                bool(state.wall_contact[k]),
-                {name: float(v[k]) for name, v in terms.items()},
+                off_list[k],
+                wall_list[k],
+                {name: values[k] for name, values in term_lists.items()},
             )
         done = terminated | truncated
         for i in np.flatnonzero(done):
             self.active[i] = False
             self.sim.park(int(i))
         self.agents = [a for a in self.agents if not done[self.agent_index[a]]]
-        self.state = state
-        self._last_proj = proj
         return result_obs, result_rew, result_term, result_trunc, infos
 
     def retire(self, agent: str, reason: str) -> None:
@@ -464,15 +484,18 @@ class RacingEnv(ParallelEnv):
         return wrap_angle(state.poses[:, 2] - proj.heading)
 
     def _off_track(
-        self, s: NDArray[np.float64], d: NDArray[np.float64], heading_error: NDArray[np.float64]
+        self, d: NDArray[np.float64], heading_error: NDArray[np.float64]
     ) -> NDArray[np.bool_]:
-        """True where all four wheels are off the road (DeepRacer's off-track rule)."""
+        """True where all four wheels are off the road (DeepRacer's off-track rule).
+
+        The road's half-widths at the cars are ``self._widths``, set once per step.
+        """
         p = self.params
         wx = np.array([0.5, 0.5, -0.5, -0.5]) * p.wheelbase
         wy = np.array([0.5, -0.5, 0.5, -0.5]) * p.track_width
         sin, cos = np.sin(heading_error)[:, None], np.cos(heading_error)[:, None]
         wheel_d = d[:, None] + wx * sin + wy * cos  # lateral offset of each wheel, m
-        left, right = self.track.widths_at(s)
+        left, right = self._widths
         on = (wheel_d <= left[:, None]) & (wheel_d >= -right[:, None])
         self._all_wheels_on: NDArray[np.bool_] = np.all(on, axis=1)
         return np.logical_not(np.any(on, axis=1))
@@ -489,7 +512,7 @@ class RacingEnv(ParallelEnv):
         p = self.params
         corners = self.sim.corners(state.poses)
         ranges = self.lidar.scan(state.poses, segment, corners) / self.lidar.max_range
-        left, right = self.track.widths_at(self._s)
+        left, right = self._widths
         # Progress rate: speed along the centre line, from the velocity and heading error.
         speed = np.hypot(state.velocity[:, 0], state.velocity[:, 1])
         course = np.arctan2(state.velocity[:, 1], state.velocity[:, 0])

@@ -56,6 +56,7 @@ class Lidar:
         self.dirs: FloatArray = np.stack([np.cos(self.angles), np.sin(self.angles)], axis=1)
         spacing = float(np.mean(np.linalg.norm(np.diff(walls.left, axis=0), axis=1)))
         self.half_window = math.ceil(1.5 * max_range / spacing) + 1
+        self._points: FloatArray = np.vstack([walls.left, walls.right])  # (2W, 2) m
 
     def scan(
         self,
@@ -72,24 +73,22 @@ class Lidar:
                 car's own rectangle is skipped. None: walls only.
         """
         n = len(poses)
+        w = self.walls.n_points
         idx = self.walls.window(segment, self.half_window)  # (n, S)
-        nxt = (idx + 1) % self.walls.n_points
-        left, right = self.walls.left, self.walls.right
-        ax = np.concatenate([left[idx, 0], right[idx, 0]], axis=1)  # (n, 2S) segment starts
-        ay = np.concatenate([left[idx, 1], right[idx, 1]], axis=1)
-        bx = np.concatenate([left[nxt, 0], right[nxt, 0]], axis=1)  # segment ends
-        by = np.concatenate([left[nxt, 1], right[nxt, 1]], axis=1)
-        skip = np.zeros(ax.shape, dtype=bool)
+        nxt = (idx + 1) % w
+        # Segment starts and ends (n, 2S, 2), left wall then right: one gather each.
+        starts = self._points[np.concatenate([idx, idx + w], axis=1)]
+        ends = self._points[np.concatenate([nxt, nxt + w], axis=1)]
+        skip = np.zeros(starts.shape[:2], dtype=bool)
         if car_corners is not None and len(car_corners) > 1:
-            ea = car_corners.reshape(1, -1, 2)  # every car's 4 edges, shared by all scanners
-            eb = car_corners[:, [1, 2, 3, 0]].reshape(1, -1, 2)
-            ones = np.ones((n, 1))
-            ax = np.concatenate([ax, ones * ea[..., 0]], axis=1)
-            ay = np.concatenate([ay, ones * ea[..., 1]], axis=1)
-            bx = np.concatenate([bx, ones * eb[..., 0]], axis=1)
-            by = np.concatenate([by, ones * eb[..., 1]], axis=1)
+            # Every car's 4 edges, shared by all scanners.
+            shape = (n, 4 * len(car_corners), 2)
+            edge_a = np.broadcast_to(car_corners.reshape(1, -1, 2), shape)
+            edge_b = np.broadcast_to(car_corners[:, [1, 2, 3, 0]].reshape(1, -1, 2), shape)
+            starts = np.concatenate([starts, edge_a], axis=1)
+            ends = np.concatenate([ends, edge_b], axis=1)
             skip = np.concatenate([skip, np.repeat(np.eye(n, dtype=bool), 4, axis=1)], axis=1)
-        return self._cast(poses, (ax, ay, bx, by), skip)
+        return self._cast(poses, (starts[..., 0], starts[..., 1], ends[..., 0], ends[..., 1]), skip)
 
     def _cast(
         self,

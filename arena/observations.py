@@ -24,6 +24,7 @@ inside the observation space.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 from numpy.typing import NDArray
@@ -85,15 +86,22 @@ class ObservationLayout:
         return slice(start, start + len(OPPONENT_FEATURES) * self.k_opponents)
 
     def bounds(self) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-        """Low and high bounds (size,) of the vector observation."""
-        ahead = np.full(2 * len(LOOKAHEAD), TRACK_LIMIT)
-        low = np.concatenate(
-            [np.zeros(self.n_rays), EGO_LOW, -ahead, np.tile(OPP_LOW, self.k_opponents)]
-        ).astype(np.float32)
-        high = np.concatenate(
-            [np.ones(self.n_rays), EGO_HIGH, ahead, np.tile(OPP_HIGH, self.k_opponents)]
-        ).astype(np.float32)
-        return low, high
+        """Low and high bounds (size,) of the vector observation (fresh copies)."""
+        low, high = _bounds(self.n_rays, self.k_opponents)
+        return low.copy(), high.copy()
+
+
+@lru_cache(maxsize=64)
+def _bounds(n_rays: int, k_opponents: int) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """Read-only bounds of :meth:`ObservationLayout.bounds`, built once per layout."""
+    ahead = np.full(2 * len(LOOKAHEAD), TRACK_LIMIT)
+    low_parts = [np.zeros(n_rays), EGO_LOW, -ahead, np.tile(OPP_LOW, k_opponents)]
+    high_parts = [np.ones(n_rays), EGO_HIGH, ahead, np.tile(OPP_HIGH, k_opponents)]
+    low = np.concatenate(low_parts).astype(np.float32)
+    high = np.concatenate(high_parts).astype(np.float32)
+    low.flags.writeable = False
+    high.flags.writeable = False
+    return low, high
 
 
 def wrap_angle(angle: FloatArray) -> FloatArray:
@@ -162,29 +170,24 @@ def opponent_features(
     out = np.zeros((n, k, len(OPPONENT_FEATURES)))
     if n < 2 or k == 0:
         return out
-    delta = poses[None, :, :2] - poses[:, None, :2]  # (n, n, 2): j relative to i, world
-    dvel = velocity[None, :, :2] - velocity[:, None, :2]
-    dist = np.hypot(delta[..., 0], delta[..., 1])
+    state = np.concatenate([poses[:, :2], velocity[:, :2]], axis=1)  # (n, 4) [x, y, vx, vy]
+    rel = state[None, :, :] - state[:, None, :]  # (n, n, 4): j relative to i, world frame
+    dist = np.hypot(rel[..., 0], rel[..., 1])
     valid = visible[None, :] & ~np.eye(n, dtype=bool)
     dist = np.where(valid, dist, np.inf)
     order = np.argsort(dist, axis=1, kind="stable")[:, :k]  # (n, min(k, n))
     m = order.shape[1]
     rows = np.arange(n)[:, None]
     cos, sin = np.cos(poses[:, 2])[:, None], np.sin(poses[:, 2])[:, None]
-    dx, dy = delta[rows, order, 0], delta[rows, order, 1]
-    vx, vy = dvel[rows, order, 0], dvel[rows, order, 1]
-    present = np.isfinite(dist[rows, order])
-    block = np.stack(
-        [
-            np.ones_like(dx),
-            (cos * dx + sin * dy) / max_range,
-            (cos * dy - sin * dx) / max_range,
-            (cos * vx + sin * vy) / v_max,
-            (cos * vy - sin * vx) / v_max,
-        ],
-        axis=-1,
-    )
-    out[:, :m] = np.where(present[..., None], block, 0.0)
+    picked = rel[rows, order]  # (n, m, 4)
+    dx, dy, vx, vy = picked[..., 0], picked[..., 1], picked[..., 2], picked[..., 3]
+    block = out[:, :m]
+    block[..., 0] = 1.0
+    block[..., 1] = (cos * dx + sin * dy) / max_range
+    block[..., 2] = (cos * dy - sin * dx) / max_range
+    block[..., 3] = (cos * vx + sin * vy) / v_max
+    block[..., 4] = (cos * vy - sin * vx) / v_max
+    block[~np.isfinite(dist[rows, order])] = 0.0  # absent slots (fewer visible cars)
     return out
 
 
@@ -203,7 +206,7 @@ def vector_observation(
         ahead: (n, L, 2) from :func:`track_ahead_features`.
         opponents: (n, k, 5) from :func:`opponent_features`.
     """
-    low, high = layout.bounds()
+    low, high = _bounds(layout.n_rays, layout.k_opponents)  # built once: a hot path
     n = len(ego)
     flat = np.concatenate([lidar, ego, ahead.reshape(n, -1), opponents.reshape(n, -1)], axis=1)
     return np.clip(flat, low, high).astype(np.float32)

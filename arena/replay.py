@@ -33,7 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from tracks import Track
-from tracks.errors import SlipstreamError
+from tracks.errors import SlipstreamError, TrackError
 from tracks.formats import track_from_dict, track_to_dict
 
 REPLAY_FORMAT = "slipstream-replay"
@@ -136,7 +136,7 @@ class ReplayLog:
                 speed=list(frames["speed"]),
                 events=list(data["events"]),
             )
-        except (KeyError, TypeError, ValueError) as err:
+        except (KeyError, TypeError, ValueError, TrackError) as err:
             raise ReplayError(f"corrupt replay: {err}") from None
 
     @classmethod

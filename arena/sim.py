@@ -473,16 +473,12 @@ class Simulator:
     def _read(self) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Positions (n, 3), quaternions (n, 4) and velocities (n, 6) [lin, ang] of all cars."""
         c = self.client
-        pos = np.empty((self.n_cars, 3))
-        quat = np.empty((self.n_cars, 4))
-        vel = np.empty((self.n_cars, 6))
-        for i, body in enumerate(self.cars):
-            p_, q_ = pb.getBasePositionAndOrientation(body, physicsClientId=c)
-            lin, ang = pb.getBaseVelocity(body, physicsClientId=c)
-            pos[i] = p_
-            quat[i] = q_
-            vel[i, :3] = lin
-            vel[i, 3:] = ang
+        poses = [pb.getBasePositionAndOrientation(body, physicsClientId=c) for body in self.cars]
+        vels = [pb.getBaseVelocity(body, physicsClientId=c) for body in self.cars]
+        # One array from nested tuples is much cheaper than filling rows one by one.
+        pos = np.array([p_ for p_, _ in poses], dtype=np.float64)
+        quat = np.array([q_ for _, q_ in poses], dtype=np.float64)
+        vel = np.array([lin + ang for lin, ang in vels], dtype=np.float64)
         return pos, quat, vel
 
     def _observe(self, wall: BoolArray, cars: BoolArray) -> SimState:
@@ -492,9 +488,10 @@ class Simulator:
         v_long = cos * vel[:, 0] + sin * vel[:, 1]
         v_lat = -sin * vel[:, 0] + cos * vel[:, 1]
         qx, qy = quat[:, 0], quat[:, 1]
+        pos[:, 2] = yaw  # [x, y, yaw]: z is not needed
         return SimState(
-            poses=np.column_stack([pos[:, 0], pos[:, 1], yaw]),
-            velocity=np.column_stack([vel[:, 0], vel[:, 1], vel[:, 5]]),
+            poses=pos,
+            velocity=vel[:, [0, 1, 5]],
             v_long=v_long,
             v_lat=v_lat,
             steering=self.steering.copy(),
@@ -545,6 +542,9 @@ class Simulator:
         wheelbase, half = p.wheelbase, 0.5 * p.track_width
         lf = lr = 0.5 * wheelbase
         gain = p.tyre_gain / dt
+        # Python floats: arithmetic on numpy scalars is several times slower (same results).
+        steering, throttles = self.steering.tolist(), throttle.tolist()
+        mass_scale, motor, grip = sc.mass.tolist(), sc.motor.tolist(), sc.friction.tolist()
         for i, body in enumerate(self.cars):
             pos, (qx, qy, qz, qw) = pb.getBasePositionAndOrientation(body, physicsClientId=c)
             (vxw, vyw, _), (_, _, r) = pb.getBaseVelocity(body, physicsClientId=c)
@@ -552,11 +552,11 @@ class Simulator:
             cy, sy = math.cos(yaw), math.sin(yaw)
             vx = cy * vxw + sy * vyw
             vy = -sy * vxw + cy * vyw
-            d_left, d_right = ackermann_angles(self.steering[i], wheelbase, p.track_width)
-            mass = p.mass * sc.mass[i]
-            f_drive = 0.25 * drive_force(float(throttle[i]), vx, p, sc.motor[i], mass)
+            d_left, d_right = ackermann_angles(steering[i], wheelbase, p.track_width)
+            mass = p.mass * mass_scale[i]
+            f_drive = 0.25 * drive_force(throttles[i], vx, p, motor[i], mass)
             wheel_mass = 0.25 * mass
-            limit = 0.25 * p.friction * sc.friction[i] * mass * GRAVITY
+            limit = 0.25 * p.friction * grip[i] * mass * GRAVITY
             fx_b = fy_b = torque = 0.0
             for wx, wy, delta in (
                 (lf, half, d_left),
