@@ -19,8 +19,8 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 
 from arena.env import ENV_VERSION, RacingEnv
-from arena.render import car_colour
 from arena.replay import ReplayLog
+from arena.sim import car_colour
 from tracks import Track
 
 OFF_TRACK_PENALTY = 2.0  # s per off-track excursion in ranked races (DeepRacer)

@@ -6,6 +6,7 @@ import numpy as np
 from numpy.typing import NDArray
 from PIL import Image, ImageDraw
 
+from arena.sim import car_colour
 from arena.walls import Walls
 from tracks import Track
 from tracks.geometry import signed_area
@@ -14,21 +15,6 @@ GROUND = (92, 128, 84)
 ROAD = (70, 70, 74)
 WALL = (235, 235, 235)
 START = (255, 255, 255)
-CAR_COLOURS = (
-    (230, 57, 70),
-    (29, 120, 214),
-    (255, 183, 3),
-    (42, 157, 143),
-    (155, 93, 229),
-    (244, 132, 95),
-    (6, 214, 160),
-    (239, 71, 111),
-)
-
-
-def car_colour(i: int) -> tuple[int, int, int]:
-    """RGB colour of car ``i`` (shared with plots and replays)."""
-    return CAR_COLOURS[i % len(CAR_COLOURS)]
 
 
 class TopDownRenderer:

@@ -66,7 +66,7 @@ pb = _import_pybullet()
 GRAVITY = 9.81  # m/s²
 WALL_THICKNESS = 0.2  # m
 WALL_HEIGHT = 0.3  # m
-CAR_RGB = (
+CAR_RGB = (  # car i's colour in images, plots and replays
     (230, 57, 70),
     (29, 120, 214),
     (255, 183, 3),
@@ -178,6 +178,11 @@ def ackermann_angles(steer: float, wheelbase: float, track_width: float) -> tupl
     )
 
 
+def car_colour(i: int) -> tuple[int, int, int]:
+    """RGB colour of car ``i`` (shared by the camera, the top-down render and replays)."""
+    return CAR_RGB[i % len(CAR_RGB)]
+
+
 def car_corners(poses: FloatArray, length: float, width: float) -> FloatArray:
     """Corners (n, 4, 2) m of car rectangles at poses (n, 3) [x, y, yaw].
 
@@ -281,7 +286,7 @@ class Simulator:
                 look = pb.createVisualShape(
                     pb.GEOM_BOX,
                     halfExtents=[p.length / 2, p.width / 2, p.height / 2],
-                    rgbaColor=[*(ch / 255 for ch in CAR_RGB[k % len(CAR_RGB)]), 1.0],
+                    rgbaColor=[*(ch / 255 for ch in car_colour(k)), 1.0],
                     physicsClientId=c,
                 )
             body = pb.createMultiBody(
