@@ -4,10 +4,9 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 PIP := $(VENV)/bin/pip
 STAMP := $(VENV)/.installed-$(shell cat pyproject.toml | md5sum | cut -c1-12)
-SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 ARTIFACTS ?= artifacts
 
-.PHONY: install system lint typecheck test demo bench clean
+.PHONY: install lint typecheck test demo bench clean
 
 $(PY):
 	python3 -m venv $(VENV)
@@ -21,15 +20,6 @@ $(STAMP): pyproject.toml | $(PY)
 
 install: $(STAMP)
 
-# Debian packages the sandbox and the browser tests need, installed only when missing.
-system:
-	@missing=""; \
-	command -v bwrap >/dev/null || missing="$$missing bubblewrap"; \
-	if [ -n "$$missing" ]; then \
-	  echo "installing system packages:$$missing"; \
-	  $(SUDO) apt-get update -qq && $(SUDO) apt-get install -y -qq $$missing >/dev/null; \
-	fi
-
 lint: install
 	$(VENV)/bin/ruff format --check .
 	$(VENV)/bin/ruff check .
@@ -37,7 +27,7 @@ lint: install
 typecheck: install
 	$(VENV)/bin/mypy
 
-test: install system lint typecheck
+test: install lint typecheck
 	mkdir -p $(ARTIFACTS)
 	$(VENV)/bin/pytest -n 2 -q --doctest-modules tracks arena agents submissions leaderboard tests
 
@@ -52,6 +42,7 @@ demo: install
 
 bench: install
 	$(PY) bench/track_speed.py
+	$(PY) bench/env_speed.py
 
 clean:
 	rm -rf $(VENV) $(ARTIFACTS) .pytest_cache .mypy_cache .ruff_cache
