@@ -20,6 +20,7 @@ EXIT_USER_ERROR = 2
 def build_parser() -> argparse.ArgumentParser:
     """The full argument parser with every package's subcommands."""
     from agents import cli as agents_cli
+    from agents import cli_train
     from tracks import cli as tracks_cli
 
     parser = argparse.ArgumentParser(
@@ -27,7 +28,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Multi-agent autonomous racing: tracks, races, training, evaluation.",
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for module in (tracks_cli, agents_cli):
+    for module in (tracks_cli, agents_cli, cli_train):
         module.register(sub)
     return parser
 

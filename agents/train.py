@@ -1,0 +1,705 @@
+"""Train a racing policy: stable-baselines3 PPO, one policy shared by the learner cars.
+
+CleanRL-style: every setting is a typed field of :class:`TrainArgs` whose docstring is its
+``--help`` text; one seeding block; a run name built from tracks, seed and time; fixed metric
+names; save, reload and evaluate straight after training.
+
+What a run does:
+
+1. builds a :class:`agents.selfplay.SelfPlayVecEnv` — ``n_envs`` race copies, ``n_learners``
+   learner cars each, the rest driven by opponents drawn per episode from a pool of frozen
+   snapshots of the learner and the pursuit / gap baselines; random track (of ``tracks``),
+   start point, direction and grid order every episode;
+2. trains ``PPO("MlpPolicy", ...)`` with TensorBoard logs under ``<out>/<run>/tb``, a
+   progress bar, a snapshot into the opponent pool every ``snapshot_every`` steps and an
+   evaluation every ``eval_every`` steps (:func:`evaluate`), each written to TensorBoard
+   (``eval/*``) and as one JSON line to ``<out>/<run>/curve.jsonl``;
+3. stops at ``total_timesteps``, after ``max_minutes`` of wall time, or — with
+   ``stop_at_first_clean_lap`` — at the first evaluation with a clean lap on every
+   evaluation track;
+4. exports ``<out>/<run>/policy.zip`` (our safe format: ``meta.json`` + safetensors, see
+   :mod:`agents.checkpoint`), loads it back with :func:`agents.loading.load_policy` and races
+   it against pursuit; writes ``<out>/<run>/summary.json``.
+
+**Clean lap.** In the *solo* evaluation race (the policy alone on the track, grid start,
+deterministic actions, ``eval_laps`` laps) the car completes every lap — status
+``finished``, so no DNF (no crash out, no time-out, no stuck or off-track retirement) — and
+has zero off-track excursions (never all four wheels off the road). A *completed* lap only
+needs the first part.
+
+Metric names: ``eval/solo_laps``, ``eval/solo_lap_time``, ``eval/duel_laps``,
+``eval/duel_lap_time``, ``eval/pursuit_lap_time``, ``eval/completion_rate``,
+``eval/clean_lap``, ``rollout/finish_rate`` (share of the last 100 training episodes whose
+learner car completed ``train_laps``, not counting episodes cut short by a team-mate) and
+``rollout/laps_per_episode``, besides SB3's ``rollout/*`` and ``train/*``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import inspect
+import itertools
+import json
+import math
+import os
+import platform
+import random
+import sys
+import time
+from collections import deque
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+from typing import Any, get_args, get_origin, get_type_hints
+
+import numpy as np
+
+from agents.policy import Policy, PolicyError
+
+DEFAULT_EVAL_SEED = 12345  # evaluation races use fixed seeds, independent of training
+
+
+@dataclass
+class TrainArgs:
+    """Settings of one training run (each field is a ``--flag`` of ``slipstream train``)."""
+
+    tracks: list[str] = field(default_factory=lambda: ["oval"])
+    """training tracks, one drawn per episode (built-in names or track files)"""
+    eval_tracks: list[str] = field(default_factory=list)
+    """evaluation tracks (default: the training tracks)"""
+    n_cars: int = 2
+    """cars per training race: learners plus opponents"""
+    n_learners: int = 1
+    """learner cars per training race (each one slot of the PPO batch)"""
+    n_envs: int = 8
+    """race copies stepped in this process"""
+    total_timesteps: int = 1_000_000
+    """learner steps to train for (summed over all slots)"""
+    seed: int = 1
+    """seed of Python, NumPy, torch and the envs"""
+    learning_rate: float = 3e-4
+    """Adam learning rate"""
+    anneal_lr: bool = True
+    """decay the learning rate linearly to 0 over total_timesteps (CleanRL's default)"""
+    n_steps: int = 256
+    """steps per slot per rollout (rollout size = n_steps × n_envs × n_learners)"""
+    batch_size: int = 512
+    """minibatch size"""
+    n_epochs: int = 10
+    """passes over each rollout"""
+    gamma: float = 0.99
+    """discount factor (0.99 ≈ a 5 s horizon at 20 Hz)"""
+    gae_lambda: float = 0.95
+    """GAE λ"""
+    clip_range: float = 0.2
+    """PPO clipping range"""
+    ent_coef: float = 0.0
+    """entropy bonus coefficient"""
+    vf_coef: float = 0.5
+    """value loss coefficient"""
+    max_grad_norm: float = 0.5
+    """gradient norm clip"""
+    net_arch: list[int] = field(default_factory=lambda: [64, 64])
+    """hidden layer sizes of the policy and of the value network (separate, tanh)"""
+    log_std_init: float = -0.5
+    """initial log standard deviation of the Gaussian actions"""
+    reward_scale: float = 1.0
+    """multiplies the env's racing reward (metres of progress per step minus penalties)"""
+    dnf_penalty: float = 10.0
+    """reward subtracted when a learner car retires (stuck, off the track, flipped)"""
+    procedural: float = 0.0
+    """share of training episodes on a freshly generated track (domain randomisation)"""
+    procedural_length: list[float] = field(default_factory=lambda: [60.0, 160.0])
+    """lap length range of generated tracks, m (min max)"""
+    procedural_difficulty: list[float] = field(default_factory=lambda: [0.2, 0.8])
+    """difficulty range of generated tracks, 0-1 (min max): twistier and narrower towards 1"""
+    train_laps: int = 1
+    """laps per training episode"""
+    randomise: bool = True
+    """random start point, direction and grid order every training episode"""
+    snapshot_every: int = 50_000
+    """add a frozen copy of the learner to the opponent pool every this many steps"""
+    max_snapshots: int = 8
+    """snapshots kept in the pool (oldest dropped)"""
+    opponent_mix: str = "snapshot=0.5,pursuit=0.3,gap=0.2"
+    """opponent kinds and their weights (snapshot, pursuit, gap)"""
+    eval_every: int = 25_000
+    """evaluate every this many steps (0: only at the end)"""
+    eval_laps: int = 1
+    """laps per evaluation race"""
+    save_best: bool = True
+    """also export the best evaluated policy (completion rate, then clean lap, then mean solo
+    lap time) to <out>/<run>/best.zip"""
+    out: Path = Path("runs")
+    """output directory; the run writes to <out>/<run_name>/"""
+    run_name: str | None = None
+    """run name (default: <tracks>__s<seed>__<unix time>)"""
+    tensorboard_dir: Path | None = None
+    """TensorBoard log directory (default: <out>/<run_name>/tb)"""
+    max_minutes: float | None = None
+    """wall-clock budget: stop training after this many minutes"""
+    stop_at_first_clean_lap: bool = False
+    """stop at the first evaluation with a clean lap on every evaluation track"""
+    progress_bar: bool = True
+    """show a progress bar on stderr"""
+    torch_threads: int = 1
+    """torch CPU threads (small nets: 1 is fastest, and leaves cores to the envs)"""
+    verbose: int = 0
+    """SB3 verbosity (0: quiet, 1: print the training table)"""
+
+
+# ---- argparse from the dataclass ------------------------------------------------------------
+
+
+def _field_docs(cls: type) -> dict[str, str]:
+    """The docstring under each field of a dataclass (CleanRL / tyro convention)."""
+    try:
+        tree = ast.parse(inspect.getsource(cls))
+    except (OSError, TypeError):  # source not available (frozen app): no help texts
+        return {}
+    body = tree.body[0].body  # type: ignore[attr-defined]
+    docs: dict[str, str] = {}
+    for node, nxt in itertools.pairwise(body):
+        if (
+            isinstance(node, ast.AnnAssign)
+            and isinstance(node.target, ast.Name)
+            and isinstance(nxt, ast.Expr)
+            and isinstance(nxt.value, ast.Constant)
+            and isinstance(nxt.value.value, str)
+        ):
+            docs[node.target.id] = " ".join(nxt.value.value.split())
+    return docs
+
+
+def add_train_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add one ``--flag`` per :class:`TrainArgs` field, typed, with the field's docstring."""
+    hints = get_type_hints(TrainArgs)
+    docs = _field_docs(TrainArgs)
+    defaults = TrainArgs()
+    for f in fields(TrainArgs):
+        flag = "--" + f.name.replace("_", "-")
+        tp = hints[f.name]
+        default = getattr(defaults, f.name)
+        kwargs: dict[str, Any] = {"default": default, "dest": f.name}
+        args = [a for a in get_args(tp) if a is not type(None)]
+        base = args[0] if get_origin(tp) is not list and args else tp
+        if tp is bool:
+            kwargs["action"] = argparse.BooleanOptionalAction
+        elif get_origin(tp) is list:
+            kwargs.update(nargs="+", type=get_args(tp)[0], metavar=f.name.upper())
+        else:
+            kwargs.update(type=base, metavar=getattr(base, "__name__", "X").upper())
+        kwargs["help"] = f"{docs.get(f.name, '')} (default: {_show(default)})"
+        parser.add_argument(flag, **kwargs)
+
+
+def _show(value: Any) -> str:
+    if isinstance(value, list):
+        return " ".join(map(str, value)) or "none"
+    return str(value)
+
+
+def args_from_namespace(ns: argparse.Namespace) -> TrainArgs:
+    """The :class:`TrainArgs` in a parsed namespace."""
+    return TrainArgs(**{f.name: getattr(ns, f.name) for f in fields(TrainArgs)})
+
+
+def parse_args(argv: Sequence[str] | None = None) -> TrainArgs:
+    """Parse a command line into :class:`TrainArgs`."""
+    parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
+    add_train_arguments(parser)
+    return args_from_namespace(parser.parse_args(argv))
+
+
+def _check(args: TrainArgs) -> None:
+    """Raise :class:`PolicyError` on settings that cannot work."""
+    from agents.selfplay import parse_mix  # noqa: PLC0415 - heavy, imported on use
+    from tracks import load_track  # noqa: PLC0415 - heavy, imported on use
+
+    for name in [*args.tracks, *args.eval_tracks]:
+        load_track(name)  # raises TrackError with a clear message
+    positive = (
+        "n_cars",
+        "n_learners",
+        "n_envs",
+        "total_timesteps",
+        "n_steps",
+        "batch_size",
+        "n_epochs",
+        "eval_laps",
+        "train_laps",
+        "max_snapshots",
+        "torch_threads",
+    )
+    for name in positive:
+        if getattr(args, name) < 1:
+            raise PolicyError(f"{name} must be at least 1, got {getattr(args, name)}")
+    if args.n_learners > args.n_cars:
+        raise PolicyError(f"n_learners ({args.n_learners}) exceeds n_cars ({args.n_cars})")
+    for name in ("procedural_length", "procedural_difficulty"):
+        pair = getattr(args, name)
+        if len(pair) != 2 or pair[0] > pair[1]:
+            raise PolicyError(f"{name} takes two numbers, min then max; got {pair}")
+    if not 0.0 <= args.procedural <= 1.0:
+        raise PolicyError(f"procedural is a share in [0, 1], got {args.procedural}")
+    if not args.net_arch or min(args.net_arch) < 1:
+        raise PolicyError("net_arch needs at least one positive layer size")
+    if args.n_learners < args.n_cars:
+        parse_mix(args.opponent_mix)
+
+
+# ---- evaluation -------------------------------------------------------------------------------
+
+
+def evaluate(
+    policy: Policy,
+    tracks: Sequence[str],
+    *,
+    laps: int = 1,
+    seed: int = DEFAULT_EVAL_SEED,
+    env_kwargs: dict[str, Any] | None = None,
+    reverse: bool = False,
+    both_grids: bool = False,
+) -> dict[str, Any]:
+    """Race ``policy`` alone and against pursuit on each track; lap completion and lap times.
+
+    Per track (and direction): one solo race from the grid, and one race against pursuit
+    with a seeded random grid order — or, with ``both_grids``, two: the policy on pole, then
+    pursuit on pole. Policies are deterministic, so repeating a race changes nothing; the
+    variety comes from directions and grid orders.
+
+    Args:
+        policy: the policy to evaluate.
+        tracks: anything :func:`tracks.load_track` takes.
+        laps: laps per race.
+        seed: seeds the races.
+        env_kwargs: the env arguments the policy was trained with.
+        reverse: also race every track in the other direction (key ``"<track>:reverse"``).
+        both_grids: two races against pursuit per track instead of one.
+
+    Returns:
+        ``completed_laps`` / ``possible_laps`` (all races), ``completion_rate``,
+        ``best_lap`` (s, over all races; None without a lap), ``clean_lap`` (a clean solo
+        lap on every track, see the module docstring), ``finished_lap`` (the same without
+        the off-track condition) and ``tracks``: per track ``solo``, ``duels`` and the
+        ``pursuit`` car of each duel.
+    """
+    from agents.baselines import make_baseline  # noqa: PLC0415 - heavy, imported on use
+    from arena.observations import ObservationLayout  # noqa: PLC0415 - heavy, imported on use
+    from arena.race import CarResult, run_race  # noqa: PLC0415 - heavy, imported on use
+    from tracks import load_track  # noqa: PLC0415 - heavy, imported on use
+
+    kw = dict(env_kwargs or {})
+    layout = ObservationLayout(int(kw.get("lidar_rays", 64)), int(kw.get("k_opponents", 3)))
+    pursuit = make_baseline("pursuit", layout)
+
+    def car(c: CarResult) -> dict[str, Any]:
+        return {
+            "status": c.status,
+            "dnf_reason": c.dnf_reason,
+            "laps": c.laps_completed,
+            "lap_times": c.lap_times,
+            "best_lap": c.best_lap,
+            "off_track": c.off_track,
+            "collisions": c.collisions,
+        }
+
+    grids: list[list[int] | str] = [[0, 1], [1, 0]] if both_grids else ["random"]
+    per_track: dict[str, Any] = {}
+    completed = possible = 0
+    clean = finished = True
+    best: list[float] = []
+    for k, name in enumerate(tracks):
+        base = load_track(name)
+        for track, key in [(base, str(name))] + (
+            [(base.reversed(), f"{name}:reverse")] if reverse else []
+        ):
+            solo = run_race(
+                [policy], track=track, laps=laps, seed=seed + k, record=False, env_kwargs=kw
+            )[0].cars[0]
+            duels = [
+                run_race(
+                    [policy, pursuit],
+                    track=track,
+                    laps=laps,
+                    seed=seed + k,
+                    grid_order=g,
+                    record=False,
+                    env_kwargs=kw,
+                )[0].cars
+                for g in grids
+            ]
+            mine = [solo, *(d[0] for d in duels)]
+            completed += sum(c.laps_completed for c in mine)
+            possible += laps * len(mine)
+            finished &= solo.status == "finished"
+            clean &= solo.status == "finished" and solo.off_track == 0
+            best += [c.best_lap for c in mine if c.best_lap is not None]
+            per_track[key] = {
+                "solo": car(solo),
+                "duels": [car(d[0]) for d in duels],
+                "pursuit": [car(d[1]) for d in duels],
+            }
+    return {
+        "completed_laps": completed,
+        "possible_laps": possible,
+        "completion_rate": completed / possible if possible else 0.0,
+        "best_lap": min(best) if best else None,
+        "finished_lap": finished,
+        "clean_lap": clean,
+        "tracks": per_track,
+    }
+
+
+# ---- the training callback --------------------------------------------------------------------
+
+
+def _make_callback(
+    args: TrainArgs,
+    *,
+    pool: Any,
+    eval_tracks: list[str],
+    env_kwargs: dict[str, Any],
+    curve_path: Path,
+    started: float,
+    export: Callable[[Path], Path],
+) -> Any:
+    """The :class:`TrainingMonitor` callback (built here: SB3 is imported lazily)."""
+    from stable_baselines3.common.callbacks import BaseCallback  # noqa: PLC0415 - heavy, imported on use
+    from tqdm import tqdm  # noqa: PLC0415 - heavy, imported on use
+
+    from agents.selfplay import SB3Driver  # noqa: PLC0415 - heavy, imported on use
+
+    class TrainingMonitor(BaseCallback):
+        """Progress bar, opponent snapshots, periodic evaluation, wall-clock budget."""
+
+        def __init__(self) -> None:
+            super().__init__()
+            self.bar: Any = None
+            self.next_snapshot = args.snapshot_every
+            self.next_eval = args.eval_every if args.eval_every > 0 else math.inf
+            self.episodes: deque[tuple[bool, int]] = deque(maxlen=100)
+            self.first_lap: dict[str, float] | None = None
+            self.first_clean_lap: dict[str, float] | None = None
+            self.evaluations = 0
+            self.last_eval_at = -1
+            self.stop_reason = "total_timesteps"
+            self.best: dict[str, Any] | None = None
+            self._best_key: tuple[float, ...] | None = None
+
+        def _on_training_start(self) -> None:
+            if args.progress_bar:
+                self.bar = tqdm(
+                    total=args.total_timesteps,
+                    unit="step",
+                    dynamic_ncols=True,
+                    file=sys.stderr,
+                    mininterval=1.0,
+                )
+
+        def _on_step(self) -> bool:
+            n = self.training_env.num_envs
+            if self.bar is not None:
+                self.bar.update(n)
+            for info, done in zip(self.locals["infos"], self.locals["dones"], strict=True):
+                if done and "episode" in info and not info["cut_short"]:
+                    finished = info["laps_completed"] >= args.train_laps
+                    self.episodes.append((finished, info["laps_completed"]))
+            t = self.num_timesteps
+            if t >= self.next_snapshot:
+                self.next_snapshot += args.snapshot_every
+                pool.add_snapshot(self.model.policy, f"snapshot@{t}")
+            keep_going = True
+            if t >= self.next_eval:
+                self.next_eval += args.eval_every
+                row = self.evaluate()
+                if args.stop_at_first_clean_lap and row["clean_lap"]:
+                    self.stop_reason = "first_clean_lap"
+                    keep_going = False
+            if args.max_minutes is not None and time.perf_counter() - started > (
+                60.0 * args.max_minutes
+            ):
+                self.stop_reason = "max_minutes"
+                keep_going = False
+            return keep_going
+
+        def _on_rollout_end(self) -> None:
+            if self.episodes:
+                self.logger.record(
+                    "rollout/finish_rate", float(np.mean([f for f, _ in self.episodes]))
+                )
+                self.logger.record(
+                    "rollout/laps_per_episode", float(np.mean([n for _, n in self.episodes]))
+                )
+
+        def evaluate(self) -> dict[str, Any]:
+            """One evaluation: TensorBoard scalars and a ``curve.jsonl`` line."""
+            t, wall = self.num_timesteps, time.perf_counter() - started
+            self.model.policy.set_training_mode(False)
+            result = evaluate(
+                SB3Driver(self.model.policy),
+                eval_tracks,
+                laps=args.eval_laps,
+                env_kwargs=env_kwargs,
+            )
+            self.evaluations += 1
+            self.last_eval_at = t
+            if result["finished_lap"] and self.first_lap is None:
+                self.first_lap = {"timesteps": t, "wall_s": round(wall, 1)}
+            if result["clean_lap"] and self.first_clean_lap is None:
+                self.first_clean_lap = {"timesteps": t, "wall_s": round(wall, 1)}
+            row = {"timesteps": t, "wall_s": round(wall, 2), **result}
+            if args.save_best:
+                self._keep_if_best(row, curve_path.parent / "best.zip")
+            with curve_path.open("a", encoding="utf-8") as fh:
+                fh.write(json.dumps(row) + "\n")
+            self._log(result)
+            if self.bar is not None:
+                best = result["best_lap"]
+                self.bar.set_postfix(
+                    laps=f"{result['completed_laps']}/{result['possible_laps']}",
+                    best="-" if best is None else f"{best:.2f}s",
+                    clean=result["clean_lap"],
+                )
+            return row
+
+        def _keep_if_best(self, row: dict[str, Any], path: Path) -> None:
+            """Export the policy to ``path`` when this evaluation is the best so far."""
+            solo = [p["solo"]["best_lap"] for p in row["tracks"].values()]
+            lap = float(np.mean(solo)) if None not in solo else math.inf
+            key = (row["completion_rate"], float(row["clean_lap"]), -lap)
+            if self._best_key is None or key > self._best_key:
+                self._best_key = key
+                export(path)
+                self.best = {
+                    "path": str(path),
+                    "timesteps": row["timesteps"],
+                    "completion_rate": row["completion_rate"],
+                    "clean_lap": row["clean_lap"],
+                    "mean_solo_lap": None if math.isinf(lap) else round(lap, 3),
+                }
+
+        def _log(self, result: dict[str, Any]) -> None:
+            log = self.logger.record
+            log("eval/completion_rate", result["completion_rate"])
+            log("eval/clean_lap", float(result["clean_lap"]))
+            per = list(result["tracks"].values())
+            groups = {
+                "solo": [p["solo"] for p in per],
+                "duel": [c for p in per for c in p["duels"]],
+                "pursuit": [c for p in per for c in p["pursuit"]],
+            }
+            for key, cars in groups.items():
+                times = [c["best_lap"] for c in cars if c["best_lap"] is not None]
+                if key != "pursuit":
+                    log(f"eval/{key}_laps", float(np.mean([c["laps"] for c in cars])))
+                if times:
+                    log(f"eval/{key}_lap_time", float(np.mean(times)))
+
+        def _on_training_end(self) -> None:
+            if self.bar is not None:
+                self.bar.close()
+
+    return TrainingMonitor()
+
+
+# ---- main -------------------------------------------------------------------------------------
+
+
+def machine_description() -> str:
+    """CPU count, processor and OS of this machine, for the record."""
+    import torch  # noqa: PLC0415 - heavy, imported on use
+
+    cpu = platform.processor() or platform.machine()
+    gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "no GPU"
+    return f"{os.cpu_count()} CPU cores ({cpu}), {platform.system()} {platform.release()}, {gpu}"
+
+
+def run_name_for(args: TrainArgs) -> str:
+    """``<tracks>__s<seed>__<unix time>`` unless ``args.run_name`` is set."""
+    if args.run_name:
+        return args.run_name
+    tracks = "+".join(Path(t).stem for t in args.tracks)
+    return f"{tracks}__s{args.seed}__{int(time.time())}"
+
+
+def main(args: TrainArgs) -> dict[str, Any]:
+    """Train, export, reload and race; returns the run summary (also in ``summary.json``).
+
+    Raises:
+        PolicyError: settings that cannot work (see :func:`_check`).
+        tracks.TrackError: an unknown track.
+    """
+    _check(args)
+    started = time.perf_counter()
+    import torch  # noqa: PLC0415 - heavy, imported on use
+    from stable_baselines3 import PPO  # noqa: PLC0415 - heavy, imported on use
+
+    from agents.checkpoint import export_sb3  # noqa: PLC0415 - heavy, imported on use
+    from agents.loading import load_policy  # noqa: PLC0415 - heavy, imported on use
+    from agents.selfplay import (  # noqa: PLC0415 - heavy, imported on use
+        OpponentPool,
+        Procedural,
+        SelfPlayVecEnv,
+        parse_mix,
+    )
+
+    run = run_name_for(args)
+    run_dir = Path(args.out) / run
+    run_dir.mkdir(parents=True, exist_ok=True)
+    tb_dir = Path(args.tensorboard_dir) if args.tensorboard_dir else run_dir / "tb"
+    curve_path = run_dir / "curve.jsonl"
+    curve_path.write_text("", encoding="utf-8")
+    eval_tracks = list(args.eval_tracks or args.tracks)
+    env_kwargs: dict[str, Any] = {}  # the env defaults: vector obs, continuous actions
+
+    # Seeding: one block.
+    random.seed(args.seed)
+    np.random.seed(args.seed)  # noqa: NPY002 - seeds the global RNG third-party code may use
+    torch.manual_seed(args.seed)
+    torch.set_num_threads(args.torch_threads)
+
+    mix = parse_mix(args.opponent_mix) if args.n_learners < args.n_cars else {}
+    pool = OpponentPool(mix=mix, max_snapshots=args.max_snapshots)
+    vec_env = SelfPlayVecEnv(
+        args.tracks,
+        n_envs=args.n_envs,
+        n_cars=args.n_cars,
+        n_learners=args.n_learners,
+        pool=pool,
+        laps=args.train_laps,
+        randomise=args.randomise,
+        reward_scale=args.reward_scale,
+        dnf_penalty=args.dnf_penalty,
+        procedural=Procedural(
+            share=args.procedural,
+            length=(args.procedural_length[0], args.procedural_length[1]),
+            difficulty=(args.procedural_difficulty[0], args.procedural_difficulty[1]),
+        ),
+        seed=args.seed,
+        env_kwargs=env_kwargs,
+    )
+    vec_env.seed(args.seed)
+    lr = args.learning_rate
+    hyper: dict[str, Any] = {
+        "learning_rate": (lambda remaining: remaining * lr) if args.anneal_lr else lr,
+        "n_steps": args.n_steps,
+        "batch_size": args.batch_size,
+        "n_epochs": args.n_epochs,
+        "gamma": args.gamma,
+        "gae_lambda": args.gae_lambda,
+        "clip_range": args.clip_range,
+        "ent_coef": args.ent_coef,
+        "vf_coef": args.vf_coef,
+        "max_grad_norm": args.max_grad_norm,
+    }
+    model = PPO(
+        "MlpPolicy",
+        vec_env,
+        **hyper,
+        policy_kwargs={
+            "net_arch": {"pi": list(args.net_arch), "vf": list(args.net_arch)},
+            "log_std_init": args.log_std_init,
+        },
+        tensorboard_log=str(tb_dir),
+        seed=args.seed,
+        device="cpu",
+        verbose=args.verbose,
+    )
+    recorded = {
+        **hyper,
+        "learning_rate": lr,
+        "anneal_lr": args.anneal_lr,
+        "net_arch": list(args.net_arch),
+        "log_std_init": args.log_std_init,
+        "reward_scale": args.reward_scale,
+        "dnf_penalty": args.dnf_penalty,
+        "procedural": args.procedural,
+        "procedural_length": args.procedural_length,
+        "procedural_difficulty": args.procedural_difficulty,
+        "n_envs": args.n_envs,
+        "n_cars": args.n_cars,
+        "n_learners": args.n_learners,
+        "opponent_mix": args.opponent_mix,
+    }
+
+    def export(path: Path, training: dict[str, Any] | None = None) -> Path:
+        training = training or {"tracks": list(args.tracks), "seed": args.seed}
+        return export_sb3(
+            model,
+            path,
+            name=run,
+            env_config=env_kwargs,
+            hyperparameters=recorded,
+            training=training,
+        )
+
+    monitor = _make_callback(
+        args,
+        pool=pool,
+        eval_tracks=eval_tracks,
+        env_kwargs=env_kwargs,
+        curve_path=curve_path,
+        started=started,
+        export=export,
+    )
+    try:
+        model.learn(total_timesteps=args.total_timesteps, callback=monitor, tb_log_name="ppo")
+        train_s = time.perf_counter() - started
+        if monitor.last_eval_at != model.num_timesteps:
+            monitor.evaluate()  # the final point of the learning curve
+    finally:
+        vec_env.close()
+
+    training = {
+        "steps": int(model.num_timesteps),
+        "wall_time_s": round(train_s, 1),
+        "machine": machine_description(),
+        "stop_reason": monitor.stop_reason,
+        "first_lap": monitor.first_lap,
+        "first_clean_lap": monitor.first_clean_lap,
+        "best": monitor.best,
+        "tracks": list(args.tracks),
+        "seed": args.seed,
+        "command": "slipstream train " + " ".join(_to_argv(args)),
+    }
+    path = export(run_dir / "policy.zip", training)
+    # CleanRL: reload what was saved and race it straight away.
+    reloaded = load_policy(str(path))
+    final = evaluate(reloaded, eval_tracks[:1], laps=args.eval_laps, env_kwargs=env_kwargs)
+    summary = {
+        "run": run,
+        "run_dir": str(run_dir),
+        "policy": str(path),
+        "policy_bytes": path.stat().st_size,
+        "tensorboard": str(tb_dir),
+        "curve": str(curve_path),
+        "training": training,
+        "reloaded_eval": final,
+        "args": {k: str(v) if isinstance(v, Path) else v for k, v in asdict(args).items()},
+    }
+    (run_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
+    return summary
+
+
+def _to_argv(args: TrainArgs) -> list[str]:
+    """The flags that reproduce ``args`` (only those that differ from the defaults)."""
+    out: list[str] = []
+    defaults = TrainArgs()
+    for f in fields(TrainArgs):
+        value, default = getattr(args, f.name), getattr(defaults, f.name)
+        if value == default or f.name in ("progress_bar", "verbose"):
+            continue
+        flag = "--" + f.name.replace("_", "-")
+        if isinstance(value, bool):
+            out.append(flag if value else "--no-" + flag[2:])
+        elif isinstance(value, list):
+            out += [flag, *map(str, value)]
+        else:
+            out += [flag, str(value)]
+    return out
+
+
+if __name__ == "__main__":
+    print(json.dumps(main(parse_args()), indent=2))
