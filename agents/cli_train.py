@@ -26,7 +26,6 @@ def register(sub: Any) -> None:
             "frozen snapshots of itself and the baselines; TensorBoard logs, periodic "
             "evaluation races against pursuit, and a safe checkpoint <out>/<run>/policy.zip."
         ),
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     add_train_arguments(parser)
     parser.add_argument(

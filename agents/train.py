@@ -14,7 +14,7 @@ What a run does:
    progress bar, a snapshot into the opponent pool every ``snapshot_every`` steps and an
    evaluation every ``eval_every`` steps (:func:`evaluate`), each written to TensorBoard
    (``eval/*``) and as one JSON line to ``<out>/<run>/curve.jsonl``;
-3. stops at ``total_timesteps``, after ``max_minutes`` of wall time, or — with
+3. stops at ``total_timesteps``, after ``max_minutes`` of wall time, on Ctrl-C, or — with
    ``stop_at_first_clean_lap`` — at the first evaluation with a clean lap on every
    evaluation track;
 4. exports ``<out>/<run>/policy.zip`` (our safe format: ``meta.json`` + safetensors, see
@@ -65,12 +65,12 @@ class TrainArgs:
     """Settings of one training run (each field is a ``--flag`` of ``slipstream train``)."""
 
     tracks: list[str] = field(default_factory=lambda: ["oval"])
-    """training tracks, one drawn per episode (built-in names or track files)"""
+    """training tracks, one drawn per episode (built-in names, track files, random:<seed>)"""
     eval_tracks: list[str] = field(default_factory=list)
     """evaluation tracks (default: the training tracks)"""
-    n_cars: int = 2
+    n_cars: int = 4
     """cars per training race: learners plus opponents"""
-    n_learners: int = 1
+    n_learners: int = 2
     """learner cars per training race (each one slot of the PPO batch)"""
     n_envs: int = 8
     """race copies stepped in this process"""
@@ -82,7 +82,7 @@ class TrainArgs:
     """Adam learning rate"""
     anneal_lr: bool = True
     """decay the learning rate linearly to 0 over total_timesteps (CleanRL's default)"""
-    n_steps: int = 256
+    n_steps: int = 128
     """steps per slot per rollout (rollout size = n_steps × n_envs × n_learners)"""
     batch_size: int = 512
     """minibatch size"""
@@ -187,11 +187,15 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
         if tp is bool:
             kwargs["action"] = argparse.BooleanOptionalAction
         elif get_origin(tp) is list:
-            kwargs.update(nargs="+", type=get_args(tp)[0], metavar=f.name.upper())
+            item = get_args(tp)[0]
+            kwargs.update(nargs="+", type=item, metavar=_METAVARS.get(item, "X"))
         else:
-            kwargs.update(type=base, metavar=getattr(base, "__name__", "X").upper())
+            kwargs.update(type=base, metavar=_METAVARS.get(base, "X"))
         kwargs["help"] = f"{docs.get(f.name, '')} (default: {_show(default)})"
         parser.add_argument(flag, **kwargs)
+
+
+_METAVARS: dict[Any, str] = {int: "N", float: "X", str: "TEXT", Path: "PATH"}
 
 
 def _show(value: Any) -> str:
@@ -645,7 +649,12 @@ def main(args: TrainArgs) -> dict[str, Any]:
         export=export,
     )
     try:
-        model.learn(total_timesteps=args.total_timesteps, callback=monitor, tb_log_name="ppo")
+        try:
+            model.learn(total_timesteps=args.total_timesteps, callback=monitor, tb_log_name="ppo")
+        except KeyboardInterrupt:  # Ctrl-C ends training early; the policy is still saved
+            monitor.stop_reason = "interrupted"
+            if monitor.bar is not None:
+                monitor.bar.close()
         train_s = time.perf_counter() - started
         if monitor.last_eval_at != model.num_timesteps:
             monitor.evaluate()  # the final point of the learning curve
