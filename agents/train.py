@@ -249,8 +249,7 @@ def _check(args: TrainArgs) -> None:
         raise PolicyError(f"procedural is a share in [0, 1], got {args.procedural}")
     if not args.net_arch or min(args.net_arch) < 1:
         raise PolicyError("net_arch needs at least one positive layer size")
-    if args.n_learners < args.n_cars:
-        parse_mix(args.opponent_mix)
+    parse_mix(args.opponent_mix)  # checked even when no car is an opponent: a typo is a typo
 
 
 # ---- evaluation -------------------------------------------------------------------------------

@@ -154,7 +154,7 @@ def test_bad_settings_are_user_errors(tmp_path: Path) -> None:
     with pytest.raises(PolicyError, match="n_learners"):
         main(TrainArgs(n_cars=1, n_learners=2, out=tmp_path))
     with pytest.raises(PolicyError, match="opponent"):
-        main(TrainArgs(n_cars=2, opponent_mix="aliens=1", out=tmp_path))
+        main(TrainArgs(n_cars=2, n_learners=1, opponent_mix="aliens=1", out=tmp_path))
 
 
 def test_tiny_training_run_produces_a_loadable_checkpoint(tmp_path: Path) -> None:
