@@ -37,7 +37,7 @@ demo: install
 	@for t in $$($(VENV)/bin/slipstream tracks list --names); do \
 	  $(VENV)/bin/slipstream tracks show $$t --out $(ARTIFACTS)/demo/$$t.png; done
 	@echo "track plots in $(ARTIFACTS)/demo/"
-	$(VENV)/bin/slipstream race --track bean --agents pursuit,pursuit,gap,random --laps 2 \
+	$(VENV)/bin/slipstream race --track bean --agents pursuit,agents/data/ppo_racer.zip,gap,random --laps 2 \
 	  --seed 1 --json $(ARTIFACTS)/demo/race.json --replay $(ARTIFACTS)/demo/race.replay.json.gz
 
 bench: install
