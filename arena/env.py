@@ -99,7 +99,8 @@ class RacingEnv(ParallelEnv):
 
     **Infos** per car: ``lap`` (current lap, 1-based), ``laps_completed``, ``lap_times``
     (s), ``s`` (m along the lap), ``race_progress`` (m from the start line), ``rank``,
-    ``collisions`` (list of ``{"with", "at_fault", "closing_speed"}``), ``off_track``,
+    ``collisions`` (list of ``{"with", "at_fault", "closing_speed", "new"}``; ``new`` marks
+    the step a contact starts), ``off_track``,
     ``wall_contact``, ``reward_terms``, ``speed``, ``dnf_reason`` when a car stops early.
 
     **Arguments.** ``track`` (built-in name, file path, ``random:<seed>`` or a ``Track``),
@@ -309,7 +310,6 @@ class RacingEnv(ParallelEnv):
         obs = self._observations(state, proj.segment, proj.d, self._heading_error(state, proj))
         zero_terms = {k: 0.0 for k in ("progress", "off_track", "wall", "collision", "overtake")}
         infos = {a: self._info(i, [], False, False, zero_terms) for i, a in enumerate(self.agents)}
-        self._last_proj = proj
         return {a: obs[i] for i, a in enumerate(self.agents)}, infos
 
     # ---- step -----------------------------------------------------------------------------
@@ -430,7 +430,6 @@ class RacingEnv(ParallelEnv):
         result_trunc: dict[str, bool] = {}
         infos: dict[str, dict[str, Any]] = {}
         self.state = state  # before the infos, which report this step's speed
-        self._last_proj = proj
         # Python scalars once for all cars: per-element numpy indexing is slow.
         reward_list, term_list, trunc_list = (
             rewards.tolist(),
@@ -451,6 +450,7 @@ class RacingEnv(ParallelEnv):
                     "with": self.possible_agents[j],
                     "at_fault": bool(at_fault[k, j]),
                     "closing_speed": float(closing[k, j]),
+                    "new": bool(new_contact[k, j]),
                 }
                 for j in (np.flatnonzero(contact[k]) if touching[k] else ())
             ]
@@ -467,6 +467,11 @@ class RacingEnv(ParallelEnv):
             self.sim.park(int(i))
         self.agents = [a for a in self.agents if not done[self.agent_index[a]]]
         return result_obs, result_rew, result_term, result_trunc, infos
+
+    @property
+    def laps_completed(self) -> NDArray[np.int64]:
+        """(n_cars,) laps each car has completed in this episode."""
+        return self._counter.laps_completed
 
     def retire(self, agent: str, reason: str) -> None:
         """Take ``agent`` out of the race now (DNF with ``reason``), e.g. its policy failed."""

@@ -281,7 +281,7 @@ class _EventRecorder:
             if len(laps) > self.laps_seen.get(agent, 0):
                 replay.add_event(now, "lap", agent, lap=len(laps), lap_time=round(laps[-1], 4))
                 self.laps_seen[agent] = len(laps)
-            for hit in info["collisions"]:
+            for hit in (h for h in info["collisions"] if h["new"]):  # once per contact
                 replay.add_event(
                     now,
                     "collision",
@@ -325,7 +325,7 @@ def _result(
                 position=0,
                 status="finished" if finished else "dnf",
                 dnf_reason=None if finished else (env.dnf_reason[i] or "timeout"),
-                laps_completed=int(env._counter.laps_completed[i]),
+                laps_completed=int(env.laps_completed[i]),
                 lap_times=lap_times,
                 best_lap=min(lap_times) if lap_times else None,
                 total_time=round(race_time + penalties, 4) if race_time is not None else None,
