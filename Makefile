@@ -6,7 +6,20 @@ PIP := $(VENV)/bin/pip
 STAMP := $(VENV)/.installed-$(shell cat pyproject.toml | md5sum | cut -c1-12)
 ARTIFACTS ?= artifacts
 
-.PHONY: install lint typecheck test demo bench clean
+.PHONY: system install lint typecheck test demo bench clean
+
+# System packages, installed with apt-get only when missing: bubblewrap (the submission
+# sandbox), chromium (browser tests of the website), postgresql (migration tests).
+system:
+	@missing=""; \
+	[ -x /usr/bin/bwrap ] || missing="$$missing bubblewrap"; \
+	[ -x /usr/bin/chromium ] || missing="$$missing chromium"; \
+	ls /usr/lib/postgresql/*/bin/initdb >/dev/null 2>&1 || missing="$$missing postgresql"; \
+	if [ -n "$$missing" ]; then \
+	  echo "apt-get install:$$missing"; \
+	  SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
+	  $$SUDO apt-get update -q && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -q $$missing; \
+	fi
 
 $(PY):
 	python3 -m venv $(VENV)
@@ -15,10 +28,10 @@ $(PY):
 $(STAMP): pyproject.toml | $(PY)
 	$(PIP) install -q --upgrade pip
 	$(PIP) install -q torch==2.13.0
-	$(PIP) install -q -e '.[train,dev]'
+	$(PIP) install -q -e '.[train,eval,server,dev]'
 	rm -f $(VENV)/.installed-* && touch $@
 
-install: $(STAMP)
+install: system $(STAMP)
 
 lint: install
 	$(VENV)/bin/ruff format --check .
