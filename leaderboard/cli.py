@@ -9,6 +9,7 @@ exits with status 2.
 from __future__ import annotations
 
 import argparse
+import importlib
 import sys
 from collections.abc import Sequence
 
@@ -16,20 +17,23 @@ from tracks.errors import SlipstreamError
 
 EXIT_USER_ERROR = 2
 
+# Modules with a ``register(subparsers)`` function, in the order ``--help`` lists them.
+COMMAND_MODULES = (
+    "tracks.cli",
+    "agents.cli",
+    "agents.cli_train",
+)
+
 
 def build_parser() -> argparse.ArgumentParser:
     """The full argument parser with every package's subcommands."""
-    from agents import cli as agents_cli
-    from agents import cli_train
-    from tracks import cli as tracks_cli
-
     parser = argparse.ArgumentParser(
         prog="slipstream",
         description="Multi-agent autonomous racing: tracks, races, training, evaluation.",
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for module in (tracks_cli, agents_cli, cli_train):
-        module.register(sub)
+    for name in COMMAND_MODULES:
+        importlib.import_module(name).register(sub)
     return parser
 
 
