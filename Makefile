@@ -44,14 +44,11 @@ test: install lint typecheck
 	mkdir -p $(ARTIFACTS)
 	$(VENV)/bin/pytest -n 2 -q --doctest-modules tracks arena agents submissions leaderboard tests
 
+# The main job: a leaderboard seeded with the baselines and the shipped checkpoint, a batch of
+# sandboxed races run by a local worker, served on http://127.0.0.1:8000 (Ctrl-C stops it).
 demo: install
 	mkdir -p $(ARTIFACTS)/demo
-	$(VENV)/bin/slipstream tracks list
-	@for t in $$($(VENV)/bin/slipstream tracks list --names); do \
-	  $(VENV)/bin/slipstream tracks show $$t --out $(ARTIFACTS)/demo/$$t.png; done
-	@echo "track plots in $(ARTIFACTS)/demo/"
-	$(VENV)/bin/slipstream race --track bean --agents pursuit,agents/data/ppo_racer.zip,gap,random --laps 2 \
-	  --seed 1 --json $(ARTIFACTS)/demo/race.json --replay $(ARTIFACTS)/demo/race.replay.json.gz
+	$(VENV)/bin/slipstream demo --data-dir $(ARTIFACTS)/demo/site --races 12 --workers 2 --port 8000
 
 bench: install
 	$(PY) bench/track_speed.py

@@ -65,7 +65,7 @@ from gymnasium import spaces
 from numpy.typing import NDArray
 
 from agents.policy import PolicyError
-from arena.env import ENV_VERSION
+from arena.version import ENV_VERSION, is_compatible
 
 if TYPE_CHECKING:
     import torch
@@ -994,10 +994,11 @@ class TorchMLPPolicy:
     def from_file(cls, path: str | Path | bytes, *, name: str | None = None) -> TorchMLPPolicy:
         """Read, validate and build a checkpoint (:func:`read_checkpoint`).
 
-        Warns (``UserWarning``) when the checkpoint was trained on another env version.
+        Warns (``UserWarning``) when the checkpoint was trained on an env version whose
+        observations may differ (not in :data:`arena.version.COMPATIBLE_ENV_VERSIONS`).
         """
         meta, tensors = read_checkpoint(path)
-        if meta.env_version != ENV_VERSION:
+        if not is_compatible(meta.env_version):
             warnings.warn(
                 f"checkpoint {meta.name!r} was trained on env version {meta.env_version}, "
                 f"this is {ENV_VERSION}: observations may mean something else",

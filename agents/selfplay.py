@@ -24,6 +24,14 @@ with probability ``procedural.share``, a freshly generated circuit
 domain randomisation that lets a policy drive tracks it has never seen. Everything is drawn
 from one seeded generator per copy, so a run is reproducible given ``seed``.
 
+Model uncertainty (``env_kwargs["uncertainty"]``): in ``sample`` mode nothing changes here
+(the env draws the perturbations). In ``adversarial`` mode each race also has ``nature_car_i``
+agents: with ``role="racer"`` they are driven by :attr:`SelfPlayVecEnv.nature` (a frozen
+nature policy; None leaves the nominal point), with ``role="nature"`` the learner slots are
+the natures ``nature_car_0 …`` of the first ``n_learners`` cars, those cars are driven by
+:attr:`SelfPlayVecEnv.racer` (a frozen racer) and each slot's reward is exactly minus its
+car's (shaped) reward — RARL's alternation, see :mod:`agents.robustness`.
+
 Reward: the env's (``"racing"`` by default: metres of progress minus penalties) times
 ``reward_scale``, minus ``dnf_penalty`` on the step where a learner car retires (stuck,
 off the track or flipped; not a time-out): without it, crashing only costs the progress the
@@ -249,7 +257,10 @@ class SelfPlayVecEnv(VecEnv):
         procedural: Procedural | None = None,
         seed: int | None = None,
         env_kwargs: dict[str, Any] | None = None,
+        role: str = "racer",
     ) -> None:
+        if role not in ("racer", "nature"):
+            raise PolicyError(f"role must be racer or nature, got {role!r}")
         if not tracks:
             raise PolicyError("at least one training track is needed")
         if not 1 <= n_learners <= n_cars:
@@ -267,20 +278,28 @@ class SelfPlayVecEnv(VecEnv):
         self.dnf_penalty = dnf_penalty
         self.procedural = procedural or Procedural()
         self.env_kwargs = dict(env_kwargs or {})
-        self.learners = [f"car_{j}" for j in range(n_learners)]
+        self.role = role
+        self.cars = [f"car_{j}" for j in range(n_learners)]
+        self.learners = [("nature_" if role == "nature" else "") + a for a in self.cars]
+        self.nature: Driver | None = None  # drives the nature agents of the racer role
+        self.racer: Driver | None = None  # drives the learners' cars in the nature role
         self._copies = [
             _Copy(rng=np.random.default_rng(None if seed is None else seed + k), envs={})
             for k in range(n_envs)
         ]
         first = self._env_for(self._copies[0], self.tracks[0])
-        obs_space = first.observation_space("car_0")
-        act_space = first.action_space("car_0")
+        if self.learners[0] not in first.possible_agents:
+            raise PolicyError("role='nature' needs an adversarial uncertainty config")
+        obs_space = first.observation_space(self.learners[0])
+        act_space = first.action_space(self.learners[0])
         if not isinstance(obs_space, spaces.Box) or not isinstance(act_space, spaces.Box):
             raise PolicyError("self-play needs obs_mode='vector' and action_mode='continuous'")
         self.render_mode = None
         self._obs_shape: tuple[int, ...] = obs_space.shape
         super().__init__(n_envs * n_learners, obs_space, act_space)
-        self._actions: NDArray[np.float32] = np.zeros((self.num_envs, 2), dtype=np.float32)
+        self._actions: NDArray[np.float32] = np.zeros(
+            (self.num_envs, *act_space.shape), dtype=np.float32
+        )
 
     # ---- env copies -----------------------------------------------------------------------
 
@@ -325,8 +344,14 @@ class SelfPlayVecEnv(VecEnv):
             options = {"start_offset": "random", "direction": "random", "grid_order": "random"}
         c.obs, _ = env.reset(seed=int(c.rng.integers(2**31)), options=options)
         c.opponents = {
-            a: self.pool.sample(c.rng, env) for a in env.possible_agents[self.n_learners :]
+            a: self.pool.sample(c.rng, env)
+            for a in env.possible_agents[self.n_learners : self.n_cars]
         }
+        if self.role == "nature" and self.racer is not None:
+            c.opponents.update(dict.fromkeys(self.cars, self.racer))
+        if self.nature is not None:
+            natures = env.possible_agents[self.n_cars :]
+            c.opponents.update({a: self.nature for a in natures if a not in self.learners})
         c.returns = np.zeros(self.n_learners)
         c.length = 0
         c.started = time.perf_counter()
@@ -382,10 +407,13 @@ class SelfPlayVecEnv(VecEnv):
             rew, term, trunc, env_infos = step[1:]
             c.length += 1
             ended = False
+            sign = -1.0 if self.role == "nature" else 1.0
             for j, agent in enumerate(self.learners):
-                r = rew.get(agent, 0.0) * self.reward_scale
-                if term.get(agent, False) and env_infos[agent].get("dnf_reason") is not None:
+                car = self.cars[j]
+                r = rew.get(car, 0.0) * self.reward_scale
+                if term.get(car, False) and env_infos[car].get("dnf_reason") is not None:
                     r -= self.dnf_penalty
+                r *= sign  # a nature's reward is exactly minus its car's
                 c.returns[j] += r
                 rewards[k * n_l + j] = r
                 ended |= term.get(agent, False) or trunc.get(agent, False)
@@ -397,7 +425,7 @@ class SelfPlayVecEnv(VecEnv):
             elapsed = time.perf_counter() - c.started
             for j, agent in enumerate(self.learners):
                 slot = k * n_l + j
-                info = env_infos[agent]
+                info = env_infos[self.cars[j]]
                 # Cut short by a team-mate's end: bootstrap like a time limit.
                 cut = not (term[agent] or trunc[agent])
                 dones[slot] = True

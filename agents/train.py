@@ -118,6 +118,11 @@ class TrainArgs:
     """laps per training episode"""
     randomise: bool = True
     """random start point, direction and grid order every training episode"""
+    backend: str = "bullet"
+    """training simulator: bullet (pybullet races against snapshots and baselines) or batch
+    (arena.batch: all races stepped as arrays, every car a learner; evaluation stays on bullet)"""
+    batch_device: str = "numpy"
+    """array device of --backend batch: numpy, torch:cpu or cuda"""
     snapshot_every: int = 50_000
     """add a frozen copy of the learner to the opponent pool every this many steps"""
     max_snapshots: int = 8
@@ -147,6 +152,17 @@ class TrainArgs:
     """torch CPU threads (small nets: 1 is fastest, and leaves cores to the envs)"""
     verbose: int = 0
     """SB3 verbosity (0: quiet, 1: print the training table)"""
+    uncertainty: str = "nominal"
+    """model uncertainty in training: nominal, sample (domain randomisation over the default
+    robust set of arena.uncertainty) or adversarial (RARL: nature agents pick each car's
+    perturbation at episode start; racer and nature trained in alternation)"""
+    nature_every: int = 20_000
+    """adversarial: train the nature for nature_steps after every this many racer steps"""
+    nature_steps: int = 10_000
+    """adversarial: nature steps per alternation phase"""
+    init_from: Path | None = None
+    """start from the policy weights of this Slipstream checkpoint (fine-tuning; the value
+    network starts fresh)"""
 
 
 # ---- argparse from the dataclass ------------------------------------------------------------
@@ -249,6 +265,14 @@ def _check(args: TrainArgs) -> None:
         raise PolicyError(f"procedural is a share in [0, 1], got {args.procedural}")
     if not args.net_arch or min(args.net_arch) < 1:
         raise PolicyError("net_arch needs at least one positive layer size")
+    if args.backend not in ("bullet", "batch"):
+        raise PolicyError(f"backend must be bullet or batch, got {args.backend!r}")
+    if args.backend == "batch" and (args.procedural > 0 or args.uncertainty != "nominal"):
+        raise PolicyError("--backend batch trains on the given tracks, nominal cars only")
+    if args.uncertainty not in ("nominal", "sample", "adversarial"):
+        raise PolicyError(f"uncertainty must be nominal, sample or adversarial: {args.uncertainty}")
+    if args.init_from is not None and not Path(args.init_from).is_file():
+        raise PolicyError(f"init_from: no such checkpoint {args.init_from}")
     parse_mix(args.opponent_mix)  # checked even when no car is an opponent: a typo is a typo
 
 
@@ -519,6 +543,24 @@ def machine_description() -> str:
     return f"{os.cpu_count()} CPU cores ({cpu}), {platform.system()} {platform.release()}, {gpu}"
 
 
+def _batch_vec_env(args: TrainArgs) -> Any:
+    """The training env of ``--backend batch``: every car of every race learns (self-play)."""
+    from arena.batch.vec_env import BatchVecEnv  # noqa: PLC0415 - heavy, imported on use
+
+    return BatchVecEnv(
+        args.tracks,
+        n_envs=args.n_envs,
+        n_cars=args.n_cars,
+        laps=args.train_laps,
+        device=args.batch_device,
+        reverse=args.randomise,
+        random_starts=args.randomise,
+        reward_scale=args.reward_scale,
+        dnf_penalty=args.dnf_penalty,
+        seed=args.seed,
+    )
+
+
 def run_name_for(args: TrainArgs) -> str:
     """``<tracks>__s<seed>__<unix time>`` unless ``args.run_name`` is set."""
     if args.run_name:
@@ -556,6 +598,12 @@ def main(args: TrainArgs) -> dict[str, Any]:
     curve_path.write_text("", encoding="utf-8")
     eval_tracks = list(args.eval_tracks or args.tracks)
     env_kwargs: dict[str, Any] = {}  # the env defaults: vector obs, continuous actions
+    # Training envs may add model uncertainty; evaluation and the checkpoint stay nominal.
+    train_env_kwargs = dict(env_kwargs)
+    if args.uncertainty != "nominal":
+        from arena.uncertainty import default_config  # noqa: PLC0415 - heavy, imported on use
+
+        train_env_kwargs["uncertainty"] = default_config(args.uncertainty)
 
     # Seeding: one block.
     random.seed(args.seed)
@@ -565,24 +613,28 @@ def main(args: TrainArgs) -> dict[str, Any]:
 
     mix = parse_mix(args.opponent_mix) if args.n_learners < args.n_cars else {}
     pool = OpponentPool(mix=mix, max_snapshots=args.max_snapshots)
-    vec_env = SelfPlayVecEnv(
-        args.tracks,
-        n_envs=args.n_envs,
-        n_cars=args.n_cars,
-        n_learners=args.n_learners,
-        pool=pool,
-        laps=args.train_laps,
-        randomise=args.randomise,
-        reward_scale=args.reward_scale,
-        dnf_penalty=args.dnf_penalty,
-        procedural=Procedural(
-            share=args.procedural,
-            length=(args.procedural_length[0], args.procedural_length[1]),
-            difficulty=(args.procedural_difficulty[0], args.procedural_difficulty[1]),
-        ),
-        seed=args.seed,
-        env_kwargs=env_kwargs,
-    )
+    vec_env: Any
+    if args.backend == "batch":
+        vec_env = _batch_vec_env(args)
+    else:
+        vec_env = SelfPlayVecEnv(
+            args.tracks,
+            n_envs=args.n_envs,
+            n_cars=args.n_cars,
+            n_learners=args.n_learners,
+            pool=pool,
+            laps=args.train_laps,
+            randomise=args.randomise,
+            reward_scale=args.reward_scale,
+            dnf_penalty=args.dnf_penalty,
+            procedural=Procedural(
+                share=args.procedural,
+                length=(args.procedural_length[0], args.procedural_length[1]),
+                difficulty=(args.procedural_difficulty[0], args.procedural_difficulty[1]),
+            ),
+            seed=args.seed,
+            env_kwargs=train_env_kwargs,
+        )
     vec_env.seed(args.seed)
     lr = args.learning_rate
     hyper: dict[str, Any] = {
@@ -625,7 +677,14 @@ def main(args: TrainArgs) -> dict[str, Any]:
         "n_cars": args.n_cars,
         "n_learners": args.n_learners,
         "opponent_mix": args.opponent_mix,
+        "uncertainty": args.uncertainty,
+        "backend": args.backend,
     }
+    if args.init_from is not None:
+        from agents.robustness import load_weights  # noqa: PLC0415 - heavy, imported on use
+
+        load_weights(model, Path(args.init_from))
+        recorded["init_from"] = str(args.init_from)
 
     def export(path: Path, training: dict[str, Any] | None = None) -> Path:
         training = training or {"tracks": list(args.tracks), "seed": args.seed}
@@ -647,9 +706,14 @@ def main(args: TrainArgs) -> dict[str, Any]:
         started=started,
         export=export,
     )
+    callback: Any = monitor
+    if args.uncertainty == "adversarial":
+        from agents.robustness import rarl_callback  # noqa: PLC0415 - heavy, imported on use
+
+        callback = rarl_callback(args, vec_env, train_env_kwargs, run_dir, monitor)
     try:
         try:
-            model.learn(total_timesteps=args.total_timesteps, callback=monitor, tb_log_name="ppo")
+            model.learn(total_timesteps=args.total_timesteps, callback=callback, tb_log_name="ppo")
         except KeyboardInterrupt:  # Ctrl-C ends training early; the policy is still saved
             monitor.stop_reason = "interrupted"
             if monitor.bar is not None:

@@ -6,26 +6,55 @@
 >>> sorted(env.agents)
 ['car_0', 'car_1']
 >>> env.close()
+
+``backend="batch"`` gives the same env on the vectorised simulator of :mod:`arena.batch`
+(numpy or torch; ``device=...``), which steps many races at once for training.
+
+Importing the package does not load pybullet: it loads when the first simulator is built
+(the leaderboard's web process reads :mod:`arena.version` and :mod:`arena.colours`).
 """
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any, Literal, overload
 
 from pettingzoo.utils.conversions import parallel_to_aec
 
-from arena.env import ENV_VERSION, RacingEnv
+from arena.env import RacingEnv
 from arena.sim import CarParams, SimError
+from arena.version import ENV_VERSION
+
+if TYPE_CHECKING:
+    from arena.batch.parallel import BatchParallelEnv
 
 
-def parallel_env(**kwargs: Any) -> RacingEnv:
-    """A :class:`RacingEnv` (PettingZoo ``ParallelEnv``); see its docstring for arguments."""
-    return RacingEnv(**kwargs)
+BACKENDS = ("bullet", "batch")
+
+
+@overload
+def parallel_env(*, backend: Literal["bullet"] = "bullet", **kwargs: Any) -> RacingEnv: ...
+@overload
+def parallel_env(*, backend: Literal["batch"], **kwargs: Any) -> BatchParallelEnv: ...
+def parallel_env(*, backend: str = "bullet", **kwargs: Any) -> RacingEnv | BatchParallelEnv:
+    """A PettingZoo ``ParallelEnv``; see :class:`RacingEnv` for the arguments.
+
+    Args:
+        backend: ``"bullet"`` (pybullet, the reference for races) or ``"batch"``
+            (:class:`arena.batch.parallel.BatchParallelEnv`, which also takes ``device``).
+        kwargs: the env's arguments.
+    """
+    if backend == "bullet":
+        return RacingEnv(**kwargs)
+    if backend == "batch":
+        from arena.batch.parallel import BatchParallelEnv  # noqa: PLC0415 - optional backend
+
+        return BatchParallelEnv(**kwargs)
+    raise SimError(f"backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
 
 
 def env(**kwargs: Any) -> Any:
     """The same environment under PettingZoo's AEC API (``parallel_to_aec``)."""
-    return parallel_to_aec(RacingEnv(**kwargs))
+    return parallel_to_aec(parallel_env(**kwargs))
 
 
-__all__ = ["ENV_VERSION", "CarParams", "RacingEnv", "SimError", "env", "parallel_env"]
+__all__ = ["BACKENDS", "ENV_VERSION", "CarParams", "RacingEnv", "SimError", "env", "parallel_env"]

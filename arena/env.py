@@ -31,19 +31,48 @@ from arena.observations import (
     vector_observation,
     wrap_angle,
 )
+from arena.perception import jitter_image, jitter_lidar
 from arena.render import TopDownRenderer
-from arena.rewards import RewardWeights, collision_blame, race_positions, racing_terms
+from arena.rewards import (
+    RACING_TERMS,
+    RewardWeights,
+    collision_blame,
+    race_positions,
+    racing_terms,
+)
 from arena.sim import CarParams, SimError, SimState, Simulator
+from arena.uncertainty import (
+    LATENCY,
+    MAX_LATENCY,
+    PARAM_NAMES,
+    REWARD_NOISE,
+    Perturbation,
+    UncertaintyConfig,
+    UncertaintyError,
+    applied,
+    nature_values,
+    nominal_values,
+    normalised,
+    reward_noise,
+    sample_values,
+)
 from arena.walls import DEFAULT_RUNOFF, Walls
 from tracks import LapCounter, Track, load_track
 
-ENV_VERSION = "0.1"
 ObsMode = Literal["vector", "dict", "image"]
 ActionMode = Literal["continuous", "discrete"]
 IMAGE_SHAPE = (120, 160, 1)  # rows, columns, channels: DeepRacer's 160×120 grayscale camera
 STUCK_DISTANCE = 0.5  # m of progress a car must make within ``stuck_time`` seconds
 FLIP_UPRIGHT = 0.3  # z of the car's up axis below which it counts as flipped
 CUT_JUMP = 3.0  # m: a larger jump in progress in one control step is a cut, not driving
+STATE_FEATURES = 10  # per car in the global state: x, y, cos, sin, vx, vy, yaw rate, s, race, on
+NATURE_PREFIX = "nature_"
+# Perturbation columns that jitter camera images, and jitter_image's argument names.
+JITTER_NAMES = ("brightness", "contrast", "hue", "noise_std", "shift", "shadow")
+JITTER = [
+    PARAM_NAMES.index(n)
+    for n in ("brightness", "contrast", "hue", "image_noise", "shift", "shadow")
+]
 Obs = NDArray[np.float32] | NDArray[np.uint8] | dict[str, NDArray[np.float32]]
 
 
@@ -52,7 +81,7 @@ class RacingEnv(ParallelEnv):
 
     ====================  ===========================================================
     Import                ``from arena import parallel_env`` (AEC: ``arena.env``)
-    Agents                ``car_0 … car_{n-1}`` (1–16)
+    Agents                ``car_0 … car_{n-1}`` (1–16); + ``nature_car_i`` (adversarial)
     Action space          ``Box(-1, 1, (2,))`` [steer, throttle] or ``Discrete(5×2)``
     Observation space     ``Box((n_rays + 21 + 5k,), float32)``, ``Dict``, or image
     Version               ``ENV_VERSION`` (see Version History)
@@ -97,21 +126,46 @@ class RacingEnv(ParallelEnv):
     steps (default: the time to cover the race at 2.5 m/s, plus 5 s). Cars that are done
     leave ``agents`` and are lifted off the track; the episode ends when no agent is left.
 
+    **Model Uncertainty.** ``uncertainty=`` takes an
+    :class:`arena.uncertainty.UncertaintyConfig`: boxes ``[lo, hi]`` per car over the
+    dynamics (friction, mass, motor and steering gains, steering offset, actuation latency in
+    whole control steps — a per-car FIFO —, action noise), the perception (lidar noise and
+    dropout; image brightness, contrast, hue, noise, shift, shadow), the reward (bounded
+    noise of level λ, interval weights on the racing terms), and the episode (start offset,
+    direction, track drawn from a set). Modes: ``"nominal"`` (the default: nothing changes,
+    nothing is paid); ``"sample"`` (uniform draws per episode, per step or every k steps,
+    independent per car, from the env's seeded generator); ``"fixed"`` (exactly the
+    perturbation in ``reset(options={"perturbation": {name: value or [per car]}})``, else
+    the config's); ``"adversarial"``: one more agent per car, ``nature_car_i``, whose
+    ``Box(-1, 1, (k,))`` action chooses car i's perturbation inside the box (k = the
+    parameters with ``lo < hi``, affine map, see :func:`arena.uncertainty.nature_values`),
+    at the first step of the episode (then held) or every step with a rate limit. Nature
+    observes the global state (:meth:`global_state`: every car's pose, velocity and progress and
+    the current perturbations) followed by a one-hot of its car; its reward is exactly
+    minus its car's perturbed reward, and it leaves with its car. Cars' observations never
+    contain the perturbation. The cars receive the *perturbed* reward.
+
     **Infos** per car: ``lap`` (current lap, 1-based), ``laps_completed``, ``lap_times``
     (s), ``s`` (m along the lap), ``race_progress`` (m from the start line), ``rank``,
     ``collisions`` (list of ``{"with", "at_fault", "closing_speed", "new"}``; ``new`` marks
     the step a contact starts), ``off_track``,
-    ``wall_contact``, ``reward_terms``, ``speed``, ``dnf_reason`` when a car stops early.
+    ``wall_contact``, ``reward_terms``, ``speed``, ``dnf_reason`` when a car stops early;
+    with uncertainty also ``reward_nominal``, ``reward_perturbed`` and ``perturbation``
+    (the car's parameters by name). Per nature agent: ``target`` and the same three.
 
     **Arguments.** ``track`` (built-in name, file path, ``random:<seed>`` or a ``Track``),
     ``n_cars`` (4), ``laps`` (1), ``control_hz`` (20), ``physics_hz`` (60), ``obs_mode``,
     ``action_mode``, ``lidar_rays`` (64), ``k_opponents`` (3), ``discrete_actions``
     ((5, 2)), ``reward``, ``reward_weights``, ``max_cycles``, ``render_mode``
     (None or ``"rgb_array"``: top-down image), ``off_track_limit`` (3 s), ``stuck_time``
-    (4 s), ``runoff`` (0.4 m of run-off before the walls), ``car_params``.
+    (4 s), ``runoff`` (0.4 m of run-off before the walls), ``car_params``,
+    ``uncertainty`` (None: nominal).
 
     **Version History.**
 
+    * 0.2: ``uncertainty`` (model-uncertainty sets, ``nature_car_i`` agents),
+      ``global_state()``; infos ``reward_nominal``, ``reward_perturbed``, ``perturbation``;
+      a mid-lap start's ``race_progress`` no longer counts the ``start_offset`` twice.
     * 0.1: first release.
 
     >>> env = RacingEnv(track="oval", n_cars=2)
@@ -149,6 +203,7 @@ class RacingEnv(ParallelEnv):
         stuck_time: float = 4.0,
         runoff: float = DEFAULT_RUNOFF,
         car_params: CarParams | None = None,
+        uncertainty: UncertaintyConfig | None = None,
     ) -> None:
         if obs_mode not in ("vector", "dict", "image"):
             raise SimError(f"obs_mode must be 'vector', 'dict' or 'image', got {obs_mode!r}")
@@ -162,7 +217,15 @@ class RacingEnv(ParallelEnv):
             raise SimError("reward must be 'racing', 'progress' or a reward_function(params)")
         if laps < 1:
             raise SimError(f"laps must be at least 1, got {laps}")
+        if uncertainty is not None and not isinstance(uncertainty, UncertaintyConfig):
+            raise UncertaintyError("uncertainty must be an arena.uncertainty.UncertaintyConfig")
+        # Python ``if`` on this static config only: nominal costs nothing per step.
+        self.uncertainty = uncertainty
+        self._unc = (
+            uncertainty if uncertainty is not None and uncertainty.mode != "nominal" else None
+        )
         self.base_track = load_track(track)
+        self._fixed_max_cycles = max_cycles
         self.n_cars = n_cars
         self.laps = laps
         self.obs_mode: ObsMode = obs_mode
@@ -173,15 +236,16 @@ class RacingEnv(ParallelEnv):
         self.off_track_limit = off_track_limit
         self.stuck_time = stuck_time
         self.runoff = runoff
-        self.sim = Simulator(
-            self.base_track,
-            n_cars,
-            params=car_params,
-            physics_hz=physics_hz,
-            control_hz=control_hz,
-            runoff=runoff,
-            visuals=obs_mode == "image",
-        )
+        self._sim_args: dict[str, Any] = {
+            "params": car_params,
+            "physics_hz": physics_hz,
+            "control_hz": control_hz,
+            "runoff": runoff,
+            "visuals": obs_mode == "image",
+        }
+        self.sim = Simulator(self.base_track, n_cars, **self._sim_args)
+        self._worlds: dict[str, tuple[Track, Simulator]] = {}
+        self._track_key = track if isinstance(track, str) else self.base_track.name
         self.params = self.sim.params
         self.control_hz = control_hz
         self.dt = 1.0 / control_hz
@@ -190,12 +254,32 @@ class RacingEnv(ParallelEnv):
         self.discrete = DiscreteActions(*discrete_actions, top_speed=self.params.top_speed)
         self.race_distance = laps * self.base_track.length
         self.max_cycles = max_cycles or math.ceil((5.0 + self.race_distance / 2.5) * control_hz)
-        self.possible_agents = [f"car_{i}" for i in range(n_cars)]
-        self.agent_index = {a: i for i, a in enumerate(self.possible_agents)}
+        self.cars = [f"car_{i}" for i in range(n_cars)]
+        adversarial = self._unc is not None and self._unc.mode == "adversarial"
+        self.natures = [NATURE_PREFIX + a for a in self.cars] if adversarial else []
+        self.possible_agents = self.cars + self.natures
+        # A nature agent shares its car's index: it acts on, and leaves with, that car.
+        self.agent_index = {a: i for i, a in enumerate(self.cars)}
+        self.agent_index.update({a: i for i, a in enumerate(self.natures)})
         self.agents: list[str] = []
-        self._views: dict[bool, tuple[Track, Walls, Lidar, DeepRacerParams | None]] = {}
-        self._observation_spaces = {a: self._make_obs_space() for a in self.possible_agents}
-        self._action_spaces = {a: self._make_action_space() for a in self.possible_agents}
+        self._views: dict[tuple[str, bool], tuple[Track, Walls, Lidar, DeepRacerParams | None]]
+        self._views = {}
+        self._observation_spaces = {a: self._make_obs_space() for a in self.cars}
+        self._action_spaces = {a: self._make_action_space() for a in self.cars}
+        if self._unc is not None:
+            n_free = len(self._unc.free)
+            self.state_space = spaces.Box(
+                -np.inf, np.inf, (n_cars * (STATE_FEATURES + n_free),), dtype=np.float32
+            )
+            for a in self.natures:
+                self._observation_spaces[a] = spaces.Box(
+                    -np.inf, np.inf, (self.state_space.shape[0] + n_cars,), dtype=np.float32
+                )
+                self._action_spaces[a] = spaces.Box(-1.0, 1.0, (n_free,), dtype=np.float32)
+            self.perturbation = Perturbation.nominal(n_cars)
+            self._raw = self.perturbation.values.copy()  # nature's continuous choice
+            self._episodes = 0
+            self._fifo = np.zeros((MAX_LATENCY + 1, n_cars, 2))
         self.np_random = np.random.default_rng()
         self._renderer: TopDownRenderer | None = None
         self._reversed = False
@@ -244,13 +328,77 @@ class RacingEnv(ParallelEnv):
 
     def _view(self, reverse: bool) -> tuple[Track, Walls, Lidar, DeepRacerParams | None]:
         """Track, walls, lidar and DeepRacer params for one direction (built once)."""
-        if reverse not in self._views:
+        key = (self._track_key, reverse)
+        if key not in self._views:
             track = self.base_track.reversed() if reverse else self.base_track
             walls = Walls.around(track, self.runoff)
             lidar = Lidar(walls, self.layout.n_rays, DEFAULT_FOV, DEFAULT_RANGE)
             dr = DeepRacerParams(track, self.race_distance) if callable(self.reward_mode) else None
-            self._views[reverse] = (track, walls, lidar, dr)
-        return self._views[reverse]
+            self._views[key] = (track, walls, lidar, dr)
+        return self._views[key]
+
+    def _use_track(self, name: str) -> None:
+        """Race on track ``name`` from now on (one simulator per track, built once)."""
+        if name == self._track_key:
+            return
+        if not self._worlds:  # keep the constructor's world under its own key
+            self._worlds[self._track_key] = (self.base_track, self.sim)
+        if name not in self._worlds:
+            track = load_track(name)
+            self._worlds[name] = (track, Simulator(track, self.n_cars, **self._sim_args))
+        self.base_track, self.sim = self._worlds[name]
+        self._track_key = name
+        self.race_distance = self.laps * self.base_track.length
+        self.max_cycles = self._fixed_max_cycles or math.ceil(
+            (5.0 + self.race_distance / 2.5) * self.control_hz
+        )
+        self._renderer = None
+
+    def _episode_options(self, opts: dict[str, Any]) -> dict[str, Any]:
+        """``opts`` with the config's episode randomisation filled in (explicit ones win)."""
+        assert self._unc is not None
+        ep = self._unc.episode
+        k = self._episodes
+        self._episodes += 1
+        if ep.tracks:
+            self._use_track(ep.tracks[int(self.np_random.integers(len(ep.tracks)))])
+        out = dict(opts)
+        if "start_offset" not in out and ep.start != "grid":
+            out["start_offset"] = (
+                "random"
+                if ep.start == "random"
+                else (k * ep.start_step % 1.0) * self.base_track.length
+            )
+        if "direction" not in out and ep.direction != "forward":
+            out["direction"] = (
+                "random" if ep.direction == "random" else ("reverse" if k % 2 else "forward")
+            )
+        return out
+
+    def _reset_perturbation(self, opts: dict[str, Any]) -> None:
+        """This episode's starting perturbation, applied to the simulator before reset."""
+        cfg = self._unc
+        assert cfg is not None
+        n = self.n_cars
+        given = opts.get("perturbation")
+        if given is not None and cfg.mode != "fixed":
+            raise UncertaintyError("reset option 'perturbation' needs uncertainty mode 'fixed'")
+        if cfg.mode == "sample":
+            values = sample_values(cfg, self.np_random, n)
+        elif cfg.mode == "fixed":
+            given = given if given is not None else cfg.perturbation
+            if isinstance(given, Perturbation):
+                values = Perturbation.from_mapping(
+                    {name: given.values[:, k].tolist() for k, name in enumerate(PARAM_NAMES)}, n
+                ).values
+            else:
+                values = Perturbation.from_mapping(given or {}, n).values
+        else:  # adversarial: nominal, pulled into the box, until nature's first action
+            values = np.tile(np.clip(nominal_values(), cfg.lows, cfg.highs), (n, 1))
+        self._raw = values
+        self.perturbation = Perturbation(applied(values))
+        self.sim.set_scales(self.perturbation.scales())
+        self._fifo[:] = 0.0
 
     def reset(
         self, seed: int | None = None, options: dict[str, Any] | None = None
@@ -259,6 +407,9 @@ class RacingEnv(ParallelEnv):
         if seed is not None:
             self.np_random = np.random.default_rng(seed)
         opts = options or {}
+        if self._unc is not None:
+            opts = self._episode_options(opts)
+            self._reset_perturbation(opts)
         n = self.n_cars
         direction = opts.get("direction", "forward")
         if direction == "random":
@@ -286,9 +437,8 @@ class RacingEnv(ParallelEnv):
         proj = self.track.project(state.poses[:, :2])
         self._s = proj.s
         self._counter = LapCounter(self.track, proj.s, max_jump=CUT_JUMP)
-        self.race_progress = self.track.delta_s(proj.s, 0.0) + (
-            float(offset) if not self._grid_start else 0.0
-        )
+        # Signed metres from the start line (the grid's offset is already in proj.s).
+        self.race_progress = self.track.delta_s(proj.s, 0.0)
         self.active = np.ones(n, dtype=bool)
         self.finished = np.zeros(n, dtype=bool)
         self.finish_time = np.full(n, np.inf)
@@ -308,9 +458,13 @@ class RacingEnv(ParallelEnv):
         self.state = state
         self._widths: tuple[NDArray[np.float64], NDArray[np.float64]] = self.track.widths_at(proj.s)
         obs = self._observations(state, proj.segment, proj.d, self._heading_error(state, proj))
-        zero_terms = {k: 0.0 for k in ("progress", "off_track", "wall", "collision", "overtake")}
-        infos = {a: self._info(i, [], False, False, zero_terms) for i, a in enumerate(self.agents)}
-        return {a: obs[i] for i, a in enumerate(self.agents)}, infos
+        zero_terms = dict.fromkeys(RACING_TERMS, 0.0)
+        infos = {a: self._info(i, [], False, False, zero_terms) for i, a in enumerate(self.cars)}
+        observations = {a: obs[i] for i, a in enumerate(self.cars)}
+        if self._unc is not None:
+            zero = np.zeros(n)
+            self._add_uncertainty(observations, {}, infos, zero, zero)
+        return observations, infos
 
     # ---- step -----------------------------------------------------------------------------
 
@@ -346,7 +500,11 @@ class RacingEnv(ParallelEnv):
         """Advance every car one control step; PettingZoo parallel semantics."""
         if not self.agents:
             raise SimError("step() called on a finished episode; call reset() first")
-        steer, throttle = self._controls(actions)
+        if self._unc is not None:
+            actions = self._perturb(actions)
+            steer, throttle = self._actuate(*self._controls(actions))
+        else:
+            steer, throttle = self._controls(actions)
         state = self.sim.step(steer, throttle)
         self.steps += 1
         now = state.time
@@ -409,7 +567,7 @@ class RacingEnv(ParallelEnv):
         terminated = newly_finished | stuck | flipped | lost
         truncated = active & ~terminated & (self.steps >= self.max_cycles)
         for i in np.flatnonzero(truncated):
-            self.dnf_reason[i] = "timeout"
+            self.dnf_reason[i] = "time_limit"
 
         terms = racing_terms(
             progress,
@@ -423,6 +581,9 @@ class RacingEnv(ParallelEnv):
         )
         obs = self._observations(state, proj.segment, proj.d, heading_error)
         rewards = self._rewards(terms, state, proj, heading_error, off_track, contact)
+        nominal = rewards
+        if self._unc is not None:
+            rewards = self._perturbed_rewards(terms, rewards)
 
         result_obs: dict[str, Obs] = {}
         result_rew: dict[str, float] = {}
@@ -440,6 +601,8 @@ class RacingEnv(ParallelEnv):
         term_lists = {name: v.tolist() for name, v in terms.items()}
         touching: list[bool] = np.any(contact, axis=1).tolist()
         for agent in self.agents:
+            if agent.startswith(NATURE_PREFIX):
+                continue
             k = self.agent_index[agent]
             result_obs[agent] = obs[k]
             result_rew[agent] = reward_list[k]
@@ -461,6 +624,13 @@ class RacingEnv(ParallelEnv):
                 wall_list[k],
                 {name: values[k] for name, values in term_lists.items()},
             )
+        if self._unc is not None:
+            self._add_uncertainty(result_obs, result_rew, infos, nominal, rewards)
+            for nat in self.natures:
+                if nat in self.agents:
+                    k = self.agent_index[nat]
+                    result_term[nat] = term_list[k]
+                    result_trunc[nat] = trunc_list[k]
         done = terminated | truncated
         for i in np.flatnonzero(done):
             self.active[i] = False
@@ -481,7 +651,149 @@ class RacingEnv(ParallelEnv):
         self.dnf_reason[i] = reason
         self.active[i] = False
         self.sim.park(i)
-        self.agents = [a for a in self.agents if a != agent]
+        self.agents = [a for a in self.agents if self.agent_index[a] != i]
+
+    # ---- model uncertainty ----------------------------------------------------------------
+
+    def _perturb(self, actions: dict[str, Any]) -> dict[str, Any]:
+        """Update this step's perturbation (sampler or nature); returns the cars' actions."""
+        cfg = self._unc
+        assert cfg is not None
+        n, rng, t = self.n_cars, self.np_random, self.steps
+        changed = False
+        if cfg.mode == "sample":
+            if t > 0 and (
+                cfg.resample == "step" or (cfg.resample == "every_k" and t % cfg.every_k == 0)
+            ):
+                self._raw = sample_values(cfg, rng, n)
+                changed = True
+            else:  # the reward noise is noise: a new draw every step
+                self._raw[:, REWARD_NOISE] = reward_noise(cfg, rng, n)
+        elif cfg.mode == "adversarial" and (t == 0 or cfg.nature_acts == "step"):
+            rate = cfg.nature_rate if t > 0 else None  # the episode-start choice is free
+            for nat in self.natures:
+                if nat in actions and nat in self.agents:
+                    i = self.agent_index[nat]
+                    act = np.asarray(actions[nat], dtype=np.float64).reshape(-1)
+                    if act.shape != (len(cfg.free),):
+                        raise SimError(f"action for {nat} must have shape ({len(cfg.free)},)")
+                    self._raw[i : i + 1] = nature_values(cfg, act, self._raw[i : i + 1], rate)
+                    changed = True
+        if changed or cfg.mode == "sample":
+            old_scales = self.perturbation.values[:, :LATENCY]
+            self.perturbation = Perturbation(applied(self._raw))
+            if not np.array_equal(old_scales, self.perturbation.values[:, :LATENCY]):
+                self.sim.set_scales(self.perturbation.scales())
+        if not self.natures:
+            return actions
+        return {a: act for a, act in actions.items() if not a.startswith(NATURE_PREFIX)}
+
+    def _actuate(
+        self, steer: NDArray[np.float64], throttle: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Commands (n,) through each car's latency FIFO, plus its action noise.
+
+        The command applied at step t is the one given at ``t − k`` (k = the car's latency,
+        whole steps); during the first k steps of an episode it is zero (no input).
+        """
+        n = self.n_cars
+        fifo = self._fifo
+        fifo[self.steps % len(fifo)] = np.stack([steer, throttle], axis=1)
+        lag = self.perturbation.column("latency").astype(np.int64)
+        cmd = fifo[(self.steps - lag) % len(fifo), np.arange(n)]
+        amp = self.perturbation.column("action_noise")
+        cmd = cmd + self.np_random.uniform(-1.0, 1.0, (n, 2)) * amp[:, None]
+        cmd = np.clip(cmd, -1.0, 1.0) * self.active[:, None]
+        return cmd[:, 0], cmd[:, 1]
+
+    def _perturbed_rewards(
+        self, terms: dict[str, NDArray[np.float64]], nominal: NDArray[np.float64]
+    ) -> NDArray[np.float64]:
+        """(n,) rewards under the reward perturbation: weighted terms plus the noise δ."""
+        pert = self.perturbation
+        weights = pert.weights()
+        if self.reward_mode == "racing":
+            base = np.sum(weights * np.stack([terms[k] for k in RACING_TERMS], axis=1), axis=1)
+        elif self.reward_mode == "progress":
+            base = weights[:, 0] * terms["progress"]
+        else:  # a DeepRacer reward function: additive noise only
+            base = nominal
+        return np.where(self.active, base + pert.column("reward_noise"), 0.0)
+
+    def global_state(self) -> NDArray[np.float32]:
+        """The global state (``state_space``; needs ``uncertainty``), float32.
+
+        Per car (10 each): x, y (relative to the track's centre, in half-extents), cos and
+        sin of yaw, vx, vy (/ max speed), yaw rate (/ π), s (/ lap length), race progress
+        (/ race distance), racing (1/0); then every car's free perturbation parameters
+        mapped to [-1, 1] (:func:`arena.uncertainty.normalised`). Parked cars read zeros.
+        """
+        if self._unc is None:
+            raise SimError("global_state() needs an uncertainty config (it holds the perturbation)")
+        st = self.state
+        xmin, ymin, xmax, ymax = self.track.bounds
+        centre = np.array([0.5 * (xmin + xmax), 0.5 * (ymin + ymax)])
+        half = max(0.5 * (xmax - xmin), 0.5 * (ymax - ymin), 1.0)
+        vmax = self.params.max_speed
+        feats = np.column_stack(
+            [
+                (st.poses[:, :2] - centre) / half,
+                np.cos(st.poses[:, 2]),
+                np.sin(st.poses[:, 2]),
+                st.velocity[:, :2] / vmax,
+                st.velocity[:, 2] / np.pi,
+                self._s / self.track.length,
+                self.race_progress / self.race_distance,
+                np.ones(self.n_cars),
+            ]
+        )
+        feats = np.where(self.active[:, None], feats, 0.0)
+        xi = normalised(self._unc, self._raw)
+        return np.concatenate([feats.ravel(), xi.ravel()]).astype(np.float32)
+
+    def _add_uncertainty(
+        self,
+        obs: dict[str, Obs],
+        rewards: dict[str, float],
+        infos: dict[str, dict[str, Any]],
+        nominal: NDArray[np.float64],
+        perturbed: NDArray[np.float64],
+    ) -> None:
+        """Infos of the cars, and everything of the nature agents, for the live agents."""
+        nom, pert = nominal.tolist(), perturbed.tolist()
+        for agent in self.agents:
+            k = self.agent_index[agent]
+            extra = {
+                "reward_nominal": nom[k],
+                "reward_perturbed": pert[k],
+                "perturbation": self.perturbation.car(k),
+            }
+            if agent.startswith(NATURE_PREFIX):
+                infos[agent] = {"target": self.cars[k], **extra}
+            else:
+                infos[agent].update(extra)
+        if not self.natures:
+            return
+        state = self.global_state()
+        onehot = np.eye(self.n_cars, dtype=np.float32)
+        for nat in self.natures:
+            if nat in self.agents:
+                k = self.agent_index[nat]
+                obs[nat] = np.concatenate([state, onehot[k]])
+                rewards[nat] = -pert[k]  # exactly zero-sum with its car's perturbed reward
+
+    def _jitter_images(self, images: list[NDArray[np.uint8]]) -> list[Obs]:
+        """Each car's camera image with its perception perturbation (untouched if nominal)."""
+        out: list[Obs] = []
+        nominal = nominal_values()[JITTER]
+        for i, img in enumerate(images):
+            levels = self.perturbation.values[i, JITTER]
+            if np.array_equal(levels, nominal):
+                out.append(img)
+                continue
+            named = dict(zip(JITTER_NAMES, levels.tolist(), strict=True))
+            out.append(jitter_image(img, rng=self.np_random, **named))
+        return out
 
     # ---- pieces ---------------------------------------------------------------------------
 
@@ -513,10 +825,20 @@ class RacingEnv(ParallelEnv):
         heading_error: NDArray[np.float64],
     ) -> list[Obs]:
         if self.obs_mode == "image":
-            return [self.sim.camera(i, IMAGE_SHAPE[1], IMAGE_SHAPE[0]) for i in range(self.n_cars)]
+            images = [
+                self.sim.camera(i, IMAGE_SHAPE[1], IMAGE_SHAPE[0]) for i in range(self.n_cars)
+            ]
+            if self._unc is not None:
+                return self._jitter_images(images)
+            return list[Obs](images)
         p = self.params
         corners = self.sim.corners(state.poses)
         ranges = self.lidar.scan(state.poses, segment, corners) / self.lidar.max_range
+        if self._unc is not None:
+            noise = self.perturbation.column("lidar_noise")
+            dropout = self.perturbation.column("lidar_dropout")
+            if noise.any() or dropout.any():
+                ranges = jitter_lidar(ranges, noise, dropout, self.np_random).astype(np.float64)
         left, right = self._widths
         # Progress rate: speed along the centre line, from the velocity and heading error.
         speed = np.hypot(state.velocity[:, 0], state.velocity[:, 1])

@@ -19,6 +19,10 @@ The ``"vector"`` observation of one car is a flat float32 array::
 
 Every element is clipped to the bounds of :func:`vector_bounds`, so an observation always lies
 inside the observation space.
+
+The functions take arrays with any number of leading batch axes (``(n, ...)`` per car, or
+``(B, n, ...)`` for the batched backend) and an array namespace ``ops``
+(:mod:`arena.batch.xp`; numpy by default, torch for the batched backend on a GPU).
 """
 
 from __future__ import annotations
@@ -28,6 +32,8 @@ from functools import lru_cache
 
 import numpy as np
 from numpy.typing import NDArray
+
+from arena.batch.xp import NUMPY, NumpyOps
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -104,9 +110,9 @@ def _bounds(n_rays: int, k_opponents: int) -> tuple[NDArray[np.float32], NDArray
     return low, high
 
 
-def wrap_angle(angle: FloatArray) -> FloatArray:
+def wrap_angle(angle: FloatArray, ops: NumpyOps = NUMPY) -> FloatArray:
     """Angles folded into [-π, π)."""
-    return np.mod(angle + np.pi, 2 * np.pi) - np.pi
+    return ops.mod(angle + np.pi, 2 * np.pi) - np.pi
 
 
 def ego_features(
@@ -121,10 +127,11 @@ def ego_features(
     progress_rate: FloatArray,
     v_max: float,
     max_steer: float,
+    ops: NumpyOps = NUMPY,
 ) -> FloatArray:
-    """Ego block (n, 7), unclipped; inputs are (n,) in m, m/s, rad, rad/s."""
-    half = np.where(d >= 0, width_left, width_right)
-    return np.stack(
+    """Ego block (..., n, 7), unclipped; inputs are (..., n) in m, m/s, rad, rad/s."""
+    half = ops.where(d >= 0, width_left, width_right)
+    return ops.stack(
         [
             v_long / v_max,
             v_lat / v_max,
@@ -134,18 +141,19 @@ def ego_features(
             d / half,
             progress_rate / v_max,
         ],
-        axis=1,
+        axis=-1,
     )
 
 
 def track_ahead_features(
-    poses: FloatArray, points_ahead: FloatArray, max_range: float
+    poses: FloatArray, points_ahead: FloatArray, max_range: float, ops: NumpyOps = NUMPY
 ) -> FloatArray:
-    """Track-ahead block (n, L, 2): centre-line points (n, L, 2) m in each car's frame / range."""
-    dx = points_ahead[..., 0] - poses[:, 0:1]
-    dy = points_ahead[..., 1] - poses[:, 1:2]
-    cos, sin = np.cos(poses[:, 2:3]), np.sin(poses[:, 2:3])
-    return np.stack([cos * dx + sin * dy, cos * dy - sin * dx], axis=-1) / max_range
+    """Track-ahead block (..., n, L, 2): centre-line points (..., n, L, 2) m in each car's
+    frame / range."""
+    dx = points_ahead[..., 0] - poses[..., 0:1]
+    dy = points_ahead[..., 1] - poses[..., 1:2]
+    cos, sin = ops.cos(poses[..., 2:3]), ops.sin(poses[..., 2:3])
+    return ops.stack([cos * dx + sin * dy, cos * dy - sin * dx], axis=-1) / max_range
 
 
 def opponent_features(
@@ -155,40 +163,51 @@ def opponent_features(
     k: int,
     max_range: float,
     v_max: float,
+    ops: NumpyOps = NUMPY,
 ) -> FloatArray:
-    """Nearest-``k`` opponent block (n, k, 5) in each car's frame.
+    """Nearest-``k`` opponent block (..., n, k, 5) in each car's frame.
 
     Args:
-        poses: (n, 3) [x m, y m, yaw rad].
-        velocity: (n, 2+) world velocities [vx, vy] m/s in the first two columns.
-        visible: (n,) False for cars that have left the race (never reported as opponents).
+        poses: (..., n, 3) [x m, y m, yaw rad].
+        velocity: (..., n, 2+) world velocities [vx, vy] m/s in the first two columns.
+        visible: (..., n) False for cars that have left the race (never reported as opponents).
         k: opponent slots per car.
         max_range: distance scale, m (the lidar range).
         v_max: speed scale, m/s.
+        ops: array namespace.
     """
-    n = len(poses)
-    out = np.zeros((n, k, len(OPPONENT_FEATURES)))
+    n = poses.shape[-2]
+    lead = tuple(poses.shape[:-2])
     if n < 2 or k == 0:
-        return out
-    state = np.concatenate([poses[:, :2], velocity[:, :2]], axis=1)  # (n, 4) [x, y, vx, vy]
-    rel = state[None, :, :] - state[:, None, :]  # (n, n, 4): j relative to i, world frame
-    dist = np.hypot(rel[..., 0], rel[..., 1])
-    valid = visible[None, :] & ~np.eye(n, dtype=bool)
-    dist = np.where(valid, dist, np.inf)
-    order = np.argsort(dist, axis=1, kind="stable")[:, :k]  # (n, min(k, n))
-    m = order.shape[1]
-    rows = np.arange(n)[:, None]
-    cos, sin = np.cos(poses[:, 2])[:, None], np.sin(poses[:, 2])[:, None]
-    picked = rel[rows, order]  # (n, m, 4)
+        return ops.zeros((*lead, n, k, len(OPPONENT_FEATURES)))
+    state = ops.concat([poses[..., :2], velocity[..., :2]], axis=-1)  # (..., n, 4)
+    rel = state[..., None, :, :] - state[..., :, None, :]  # (..., n, n, 4): j relative to i
+    dist = ops.hypot(rel[..., 0], rel[..., 1])
+    valid = visible[..., None, :] & ~ops.eye(n)
+    dist = ops.where(valid, dist, np.inf)
+    order = ops.argsort(dist, axis=-1)[..., :k]  # (..., n, min(k, n))
+    m = order.shape[-1]
+    picked = ops.gather_rows(rel, order)  # (..., n, m, 4)
     dx, dy, vx, vy = picked[..., 0], picked[..., 1], picked[..., 2], picked[..., 3]
-    block = out[:, :m]
-    block[..., 0] = 1.0
-    block[..., 1] = (cos * dx + sin * dy) / max_range
-    block[..., 2] = (cos * dy - sin * dx) / max_range
-    block[..., 3] = (cos * vx + sin * vy) / v_max
-    block[..., 4] = (cos * vy - sin * vx) / v_max
-    block[~np.isfinite(dist[rows, order])] = 0.0  # absent slots (fewer visible cars)
-    return out
+    cos, sin = ops.cos(poses[..., 2])[..., None], ops.sin(poses[..., 2])[..., None]
+    # The visible cars sort first: slot q is filled when more than q of them exist. Absent
+    # slots are zeroed by the same factor that scales the present ones.
+    others = ops.sum(valid, axis=-1)  # (..., n) visible other cars
+    flag = ops.cast(ops.arange(m) < others[..., None], dist.dtype)  # (..., n, m)
+    per_m, per_v = flag * (1.0 / max_range), flag * (1.0 / v_max)
+    block = ops.stack(
+        [
+            flag,
+            (cos * dx + sin * dy) * per_m,
+            (cos * dy - sin * dx) * per_m,
+            (cos * vx + sin * vy) * per_v,
+            (cos * vy - sin * vx) * per_v,
+        ],
+        axis=-1,
+    )
+    if m < k:
+        block = ops.concat([block, ops.zeros((*lead, n, k - m, len(OPPONENT_FEATURES)))], -2)
+    return block
 
 
 def vector_observation(
@@ -197,16 +216,19 @@ def vector_observation(
     ahead: FloatArray,
     opponents: FloatArray,
     layout: ObservationLayout,
+    ops: NumpyOps = NUMPY,
 ) -> NDArray[np.float32]:
-    """Flat observations (n, size) float32, clipped into the observation bounds.
+    """Flat observations (..., n, size) float32, clipped into the observation bounds.
 
     Args:
-        lidar: (n, n_rays) normalised ranges in [0, 1].
-        ego: (n, 7) from :func:`ego_features`.
-        ahead: (n, L, 2) from :func:`track_ahead_features`.
-        opponents: (n, k, 5) from :func:`opponent_features`.
+        lidar: (..., n, n_rays) normalised ranges in [0, 1].
+        ego: (..., n, 7) from :func:`ego_features`.
+        ahead: (..., n, L, 2) from :func:`track_ahead_features`.
+        opponents: (..., n, k, 5) from :func:`opponent_features`.
+        layout: sizes of the blocks.
+        ops: array namespace.
     """
     low, high = _bounds(layout.n_rays, layout.k_opponents)  # built once: a hot path
-    n = len(ego)
-    flat = np.concatenate([lidar, ego, ahead.reshape(n, -1), opponents.reshape(n, -1)], axis=1)
-    return np.clip(flat, low, high).astype(np.float32)
+    rows = tuple(ego.shape[:-1])
+    flat = ops.concat([lidar, ego, ahead.reshape(*rows, -1), opponents.reshape(*rows, -1)], axis=-1)
+    return ops.cast(ops.clip(flat, ops.const(low), ops.const(high)), ops.float32)

@@ -3,8 +3,16 @@
 Finishing order: cars that complete the race distance, by total time (race time plus, in
 ranked races, DeepRacer's penalties: +2 s per off-track excursion and +5 s per collision the
 car was to blame for); then the cars that did not finish, by laps completed and distance.
-A policy that raises leaves the race as ``dnf`` with reason ``error``; one that returns an
-action of the wrong shape or a non-finite number, with reason ``invalid``. The race goes on.
+A policy that raises leaves the race as ``dnf`` with reason ``error`` — or with the
+exception's ``dnf_reason`` attribute when it has one (a sandboxed policy's ``"timeout"``,
+``"invalid"``) —; one that returns an action outside the action space (wrong shape, not a
+number, NaN/inf, out of range), with reason ``invalid``. The race goes on for the others.
+A car still running when the race's step limit is reached is ``dnf`` with ``time_limit``.
+
+Policies that offer ``start()`` are started before the env is built (a sandboxed policy
+loads in its own process meanwhile); those that offer two-phase ``send(obs)`` /
+``receive()`` are sent their observations all at once and then collected, so sandboxed cars
+think in parallel, and they are ``close()``-d when the race ends.
 """
 
 from __future__ import annotations
@@ -12,15 +20,18 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Callable, Sequence
+from contextlib import suppress
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
+from gymnasium import spaces
 
-from arena.env import ENV_VERSION, RacingEnv
+from arena.env import RacingEnv
 from arena.replay import ReplayLog
 from arena.sim import car_colour
+from arena.version import ENV_VERSION
 from tracks import Track
 
 OFF_TRACK_PENALTY = 2.0  # s per off-track excursion in ranked races (DeepRacer)
@@ -148,13 +159,47 @@ class RaceResult:
         return sorted(self.cars, key=lambda c: c.position)
 
 
-def _bad_action(action: Any, space_shape: tuple[int, ...] | None) -> bool:
-    arr = np.asarray(action)
-    if not np.issubdtype(arr.dtype, np.number):
-        return True
-    if space_shape is not None and arr.shape != space_shape:
-        return True
-    return not bool(np.all(np.isfinite(arr)))
+ACTION_TOLERANCE = 1e-6  # slack on Box bounds for float rounding
+
+
+def action_problem(action: Any, space: spaces.Space[Any] | None) -> str | None:
+    """What is wrong with ``action`` for ``space`` (None: nothing).
+
+    Checks that it is real numbers (not text, bool, complex or objects), finite, of the
+    space's shape, and inside it: a ``Box``'s bounds (± ``ACTION_TOLERANCE``), a
+    ``Discrete``'s integers ``start … start + n - 1``.
+    """
+    try:
+        arr = np.asarray(action)
+    except (TypeError, ValueError) as err:  # ragged nested lists and the like
+        return f"not an array: {err}"
+    if arr.dtype.kind not in "fiu":
+        return f"not a number (dtype {arr.dtype})"
+    if not bool(np.all(np.isfinite(arr))):
+        return "NaN or infinite value"
+    if space is None:
+        return None
+    if arr.shape != space.shape:
+        return f"shape {arr.shape}, expected {space.shape}"
+    if isinstance(space, spaces.Box):
+        if np.any(arr < space.low - ACTION_TOLERANCE) or np.any(
+            arr > space.high + ACTION_TOLERANCE
+        ):
+            return f"{arr.tolist()} outside [{space.low.tolist()}, {space.high.tolist()}]"
+    elif isinstance(space, spaces.Discrete):
+        value = float(arr)
+        if value != round(value) or not space.start <= value < space.start + space.n:
+            return f"{value:g} is not an action of Discrete({space.n})"
+    return None
+
+
+def _dnf_reason(err: BaseException) -> str:
+    reason = getattr(err, "dnf_reason", None)
+    return reason if isinstance(reason, str) and reason else "error"
+
+
+def _two_phase(policy: Policy) -> bool:
+    return callable(getattr(policy, "send", None)) and callable(getattr(policy, "receive", None))
 
 
 def run_race(
@@ -182,11 +227,27 @@ def run_race(
         record: also build a replay log.
         env_kwargs: extra :class:`RacingEnv` arguments.
     """
-    env = RacingEnv(track=track, n_cars=len(policies), laps=laps, **(env_kwargs or {}))
+    start_errors: dict[int, Exception] = {}
     try:
-        return _race(env, policies, laps, seed, ranked, grid_order, progress, record)
+        for i, pol in enumerate(policies):
+            start = getattr(pol, "start", None)
+            if callable(start):
+                try:
+                    start()
+                except Exception as err:  # reported when the car would take the grid
+                    start_errors[i] = err
+        env = RacingEnv(track=track, n_cars=len(policies), laps=laps, **(env_kwargs or {}))
+        try:
+            return _race(
+                env, policies, laps, seed, ranked, grid_order, progress, record, start_errors
+            )
+        finally:
+            env.close()
     finally:
-        env.close()
+        for pol in policies:
+            if _two_phase(pol):
+                with suppress(Exception):
+                    pol.close()  # type: ignore[attr-defined]
 
 
 def _race(
@@ -198,14 +259,13 @@ def _race(
     grid_order: Sequence[int] | str | None,
     progress: ProgressFn | None,
     record: bool,
+    start_errors: dict[int, Exception],
 ) -> tuple[RaceResult, ReplayLog | None]:
     options: dict[str, Any] = {}
     if grid_order is not None:
         options["grid_order"] = grid_order if isinstance(grid_order, str) else list(grid_order)
     obs, _ = env.reset(seed=seed, options=options)
     agents = list(env.possible_agents)
-    for i, pol in enumerate(policies):
-        pol.reset(seed + i)
     names = [getattr(p, "name", type(p).__name__) for p in policies]
     replay = None
     if record:
@@ -219,21 +279,18 @@ def _race(
             env_version=ENV_VERSION,
         )
         _frame(env, replay, 0.0)
-    recorder = _EventRecorder(replay) if replay is not None else None
-    shape = env.action_space(agents[0]).shape
-    while env.agents:
-        actions: dict[str, Any] = {}
-        for agent in list(env.agents):
-            i = env.agent_index[agent]
+    for i, (agent, pol) in enumerate(zip(agents, policies, strict=True)):
+        err = start_errors.get(i)
+        if err is None:
             try:
-                act = policies[i].act(obs[agent])
-            except Exception as err:  # a policy's bug must not stop the race
-                _retire(env, replay, agent, "error", detail=f"{type(err).__name__}: {err}")
+                pol.reset(seed + i)
                 continue
-            if _bad_action(act, shape):
-                _retire(env, replay, agent, "invalid")
-                continue
-            actions[agent] = act
+            except Exception as reset_err:  # a policy that cannot even start sits out
+                err = reset_err
+        _retire(env, replay, agent, _dnf_reason(err), detail=f"{type(err).__name__}: {err}")
+    recorder = _EventRecorder(replay) if replay is not None else None
+    while env.agents:
+        actions = _actions(env, replay, policies, obs)
         if not env.agents:
             break
         obs, _, term, trunc, infos = env.step(actions)
@@ -244,6 +301,41 @@ def _race(
         if progress is not None:
             progress(env.steps, env.max_cycles)
     return _result(env, names, laps, seed, ranked), replay
+
+
+def _actions(
+    env: RacingEnv, replay: ReplayLog | None, policies: Sequence[Policy], obs: dict[str, Any]
+) -> dict[str, Any]:
+    """One action per racing car; a car whose policy fails is retired instead.
+
+    Two-phase policies get their observations first and are collected last, so they think
+    while the in-process policies act.
+    """
+    results: dict[str, Any] = {}
+    sent: list[str] = []
+    for agent in list(env.agents):
+        pol = policies[env.agent_index[agent]]
+        try:
+            if _two_phase(pol):
+                pol.send(obs[agent])  # type: ignore[attr-defined]
+                sent.append(agent)
+            else:
+                results[agent] = pol.act(obs[agent])
+        except Exception as err:  # a policy's bug must not stop the race
+            _retire(env, replay, agent, _dnf_reason(err), detail=f"{type(err).__name__}: {err}")
+    for agent in sent:
+        try:
+            results[agent] = policies[env.agent_index[agent]].receive()  # type: ignore[attr-defined]
+        except Exception as err:
+            _retire(env, replay, agent, _dnf_reason(err), detail=f"{type(err).__name__}: {err}")
+    actions: dict[str, Any] = {}
+    for agent, act in results.items():
+        problem = action_problem(act, env.action_space(agent))
+        if problem is None:
+            actions[agent] = act
+        else:
+            _retire(env, replay, agent, "invalid", detail=problem)
+    return actions
 
 
 def _retire(
@@ -324,7 +416,7 @@ def _result(
                 name=names[i],
                 position=0,
                 status="finished" if finished else "dnf",
-                dnf_reason=None if finished else (env.dnf_reason[i] or "timeout"),
+                dnf_reason=None if finished else (env.dnf_reason[i] or "time_limit"),
                 laps_completed=int(env.laps_completed[i]),
                 lap_times=lap_times,
                 best_lap=min(lap_times) if lap_times else None,

@@ -16,6 +16,9 @@ speed. The car that is hit is not at fault. In a head-on contact both are.
 
 ``"progress"`` is the progress term alone. A DeepRacer ``reward_function(params)`` gets the
 params dict of :mod:`arena.deepracer`.
+
+The functions take arrays with any number of leading batch axes (``(B, n, ...)`` for the
+batched backend) and an array namespace ``ops`` (:mod:`arena.batch.xp`, numpy by default).
 """
 
 from __future__ import annotations
@@ -25,6 +28,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+
+from arena.batch.xp import NUMPY, NumpyOps
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -45,7 +50,11 @@ class RewardWeights:
 
 
 def collision_blame(
-    poses: FloatArray, velocity: FloatArray, contact: BoolArray, cone: float = BLAME_CONE
+    poses: FloatArray,
+    velocity: FloatArray,
+    contact: BoolArray,
+    cone: float = BLAME_CONE,
+    ops: NumpyOps = NUMPY,
 ) -> tuple[BoolArray, FloatArray]:
     """Who is to blame in each car–car contact.
 
@@ -54,27 +63,25 @@ def collision_blame(
         velocity: (n, 2+) world velocity [vx, vy] m/s in the first two columns.
         contact: (n, n) symmetric, True where cars touched this step.
         cone: half-angle, rad, within which the other car counts as ahead.
+        ops: array namespace.
 
     Returns:
         at_fault (n, n): True where car i is to blame for its contact with car j;
         closing (n, n): closing speed of i on j, m/s (positive when approaching).
     """
-    rel = poses[None, :, :2] - poses[:, None, :2]  # (n, n, 2): j seen from i
-    dist = np.maximum(np.hypot(rel[..., 0], rel[..., 1]), 1e-9)
+    rel = poses[..., None, :, :2] - poses[..., :, None, :2]  # (..., n, n, 2): j seen from i
+    dist = ops.maximum(ops.hypot(rel[..., 0], rel[..., 1]), 1e-9)
     unit = rel / dist[..., None]
-    dv = velocity[:, None, :2] - velocity[None, :, :2]  # v_i − v_j
-    closing = np.einsum("ijk,ijk->ij", dv, unit)
-    bearing = np.arctan2(rel[..., 1], rel[..., 0]) - poses[:, None, 2]
-    ahead = np.cos(bearing) >= math.cos(cone)
+    dv = velocity[..., :, None, :2] - velocity[..., None, :, :2]  # v_i − v_j
+    closing = dv[..., 0] * unit[..., 0] + dv[..., 1] * unit[..., 1]
+    bearing = ops.atan2(rel[..., 1], rel[..., 0]) - poses[..., :, None, 2]
+    ahead = ops.cos(bearing) >= math.cos(cone)
     return contact & ahead & (closing > 0), closing
 
 
-def race_positions(race_progress: FloatArray) -> NDArray[np.int64]:
-    """1-based positions (n,) from race progress (n,) m: the furthest car is 1st."""
-    order = np.argsort(-race_progress, kind="stable")
-    pos = np.empty(len(order), dtype=np.int64)
-    pos[order] = np.arange(1, len(order) + 1)
-    return pos
+def race_positions(race_progress: FloatArray, ops: NumpyOps = NUMPY) -> NDArray[np.int64]:
+    """1-based positions (..., n) from race progress (..., n) m: the furthest car is 1st."""
+    return ops.inverse_permutation(ops.argsort(-race_progress, axis=-1)) + 1
 
 
 def racing_terms(
@@ -86,12 +93,13 @@ def racing_terms(
     places_gained: NDArray[np.int64],
     dt: float,
     w: RewardWeights,
+    ops: NumpyOps = NUMPY,
 ) -> dict[str, FloatArray]:
-    """Each racing reward term (n,) for one control step of ``dt`` seconds."""
+    """Each racing reward term (..., n) for one control step of ``dt`` seconds."""
     return {
         "progress": w.progress * progress,
-        "off_track": -w.off_track * dt * off_track.astype(np.float64),
-        "wall": -w.wall * dt * wall.astype(np.float64),
-        "collision": -w.collision * np.where(at_fault, closing, 0.0).sum(axis=1),
-        "overtake": w.overtake * places_gained.astype(np.float64),
+        "off_track": -w.off_track * dt * ops.cast(off_track, ops.float),
+        "wall": -w.wall * dt * ops.cast(wall, ops.float),
+        "collision": -w.collision * ops.sum(ops.where(at_fault, closing, 0.0), axis=-1),
+        "overtake": w.overtake * ops.cast(places_gained, ops.float),
     }

@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from arena.colours import car_colour
 from arena.walls import DEFAULT_RUNOFF, Walls
 from tracks import Track
 from tracks.errors import SlipstreamError
@@ -61,21 +62,24 @@ def _import_pybullet() -> Any:
         os.close(devnull)
 
 
-pb = _import_pybullet()
+class _LazyPybullet:
+    """Stands in for the pybullet module until it is first used, then replaces itself.
+
+    Importing :mod:`arena` (the package, its version and colours) must stay light: the
+    leaderboard's web process reads them and never loads pybullet.
+    """
+
+    def __getattr__(self, name: str) -> Any:
+        global pb  # noqa: PLW0603 - the module global is the cache
+        pb = _import_pybullet()
+        return getattr(pb, name)
+
+
+pb: Any = _LazyPybullet()
 
 GRAVITY = 9.81  # m/s²
 WALL_THICKNESS = 0.2  # m
 WALL_HEIGHT = 0.3  # m
-CAR_RGB = (  # car i's colour in images, plots and replays
-    (230, 57, 70),
-    (29, 120, 214),
-    (255, 183, 3),
-    (42, 157, 143),
-    (155, 93, 229),
-    (244, 132, 95),
-    (6, 214, 160),
-    (239, 71, 111),
-)
 PARKING_X = 1.0e4  # m: where cars that left the race wait, far from any track
 MAX_COMPOUND_SHAPES = 16  # pybullet's limit on shapes per create*ShapeArray call
 TILT_INERTIA = 1.0e4  # kg m²: a car's roll and pitch inertia, so the box stays flat
@@ -176,11 +180,6 @@ def ackermann_angles(steer: float, wheelbase: float, track_width: float) -> tupl
         math.atan(wheelbase * tan / (wheelbase - half * tan)),
         math.atan(wheelbase * tan / (wheelbase + half * tan)),
     )
-
-
-def car_colour(i: int) -> tuple[int, int, int]:
-    """RGB colour of car ``i`` (shared by the camera, the top-down render and replays)."""
-    return CAR_RGB[i % len(CAR_RGB)]
 
 
 def car_corners(poses: FloatArray, length: float, width: float) -> FloatArray:

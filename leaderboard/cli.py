@@ -22,6 +22,10 @@ COMMAND_MODULES = (
     "tracks.cli",
     "agents.cli",
     "agents.cli_train",
+    "agents.cli_robustness",
+    "submissions.cli",
+    "leaderboard.demo",
+    "leaderboard.cli_server",
 )
 
 

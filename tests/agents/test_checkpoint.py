@@ -29,7 +29,7 @@ from agents.checkpoint import (
     space_from_json,
 )
 from agents.policy import Policy, PolicyError
-from arena.env import ENV_VERSION
+from arena.version import ENV_VERSION
 from tests.agents.models import (
     BOX_ACTIONS,
     DISCRETE_ACTIONS,

@@ -55,7 +55,7 @@ def test_random_car_ends_dnf_with_a_reason() -> None:
     assert by_name["pursuit"].position == 1
     rnd = by_name["random"]
     assert rnd.status == "dnf"
-    assert rnd.dnf_reason in ("stuck", "off_track", "flipped", "timeout")
+    assert rnd.dnf_reason in ("stuck", "off_track", "flipped", "time_limit")
     assert rnd.position == 2
     assert rnd.total_time is None
 

@@ -196,7 +196,7 @@ def test_truncation_at_max_cycles() -> None:
         assert not any(term.values())
         assert all(trunc.values()) == (step == 25)
     assert env.agents == []
-    assert all(info["dnf_reason"] == "timeout" for info in infos.values())
+    assert all(info["dnf_reason"] == "time_limit" for info in infos.values())
     env.close()
 
 
@@ -225,6 +225,22 @@ def test_start_offset_moves_the_grid() -> None:
     np.testing.assert_allclose(env.state.poses, env.track.start_grid(2, offset=20.0), atol=1e-6)
     s = env.track.project(env.state.poses[:, :2]).s
     assert np.all((s > 17.0) & (s < 20.0))  # just behind the moved start line
+    env.close()
+
+
+@pytest.mark.parametrize("offset", [20.0, 60.0])
+def test_mid_lap_start_counts_race_progress_from_the_start_line(offset: float) -> None:
+    env = RacingEnv(track="oval", n_cars=2)  # 94 m long: 60 m is 34 m before the line
+    _, infos = env.reset(seed=0, options={"start_offset": offset})
+    s = env.track.project(env.state.poses[:, :2]).s
+    expected = env.track.delta_s(s, 0.0)  # the offset once, not twice
+    got = [infos[a]["race_progress"] for a in env.agents]
+    np.testing.assert_allclose(got, expected, atol=1e-9)
+    length = env.track.length
+    ahead = offset if offset < length / 2 else offset - length  # signed, from the line
+    assert ahead - 1.0 < got[0] < ahead  # the pole sits just behind its grid line
+    _, _, _, _, infos = env.step({a: np.array([0.0, 1.0]) for a in env.agents})
+    assert abs(infos["car_0"]["race_progress"] - got[0]) < 0.2  # one step's progress
     env.close()
 
 

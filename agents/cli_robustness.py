@@ -1,0 +1,169 @@
+"""``slipstream robustness``: a policy's robustness to model uncertainty (:mod:`agents.robustness`).
+
+This module stays cheap to import: the env and torch are imported by the handler only.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from agents.robustness import GRID, SCALES
+
+
+def register(sub: Any) -> None:
+    """Add ``robustness`` to the ``slipstream`` subcommands."""
+    p = sub.add_parser(
+        "robustness",
+        help="score a policy under model uncertainty: grid, random draws, trained nature",
+        description=(
+            "Race POLICY alone on a track, nominally and over a grid of perturbations "
+            "(friction × motor gain × steering offset × latency), on random draws of the "
+            "default uncertainty set and against a freshly trained nature; prints the "
+            "nominal score, the random mean, the worst case, the worst-10%% mean and "
+            "worst/nominal (scores: effective speed, m/s), and saves a JSON report and a "
+            "degradation plot (PNG)."
+        ),
+    )
+    p.add_argument("policy", help="a baseline name (pursuit, gap, random) or a checkpoint path")
+    p.add_argument("--track", default="oval", help="built-in name, file or random:<seed>")
+    p.add_argument("--laps", type=int, default=1, help="laps per race")
+    p.add_argument("--seed", type=int, default=0, help="seeds races, random draws and nature")
+    p.add_argument("--random", type=int, default=20, metavar="N", help="random draws (0: skip)")
+    p.add_argument(
+        "--nature-steps",
+        type=int,
+        default=20_000,
+        metavar="N",
+        help="PPO steps to train the nature against the policy (0: skip)",
+    )
+    for name, values in GRID.items():
+        p.add_argument(
+            "--" + name.replace("_", "-"),
+            type=float,
+            nargs="+",
+            default=list(values),
+            metavar="X",
+            help=f"grid values of {name} (default: {' '.join(map(str, values))})",
+        )
+    p.add_argument(
+        "--scales",
+        type=float,
+        nargs="+",
+        default=list(SCALES),
+        metavar="S",
+        help="bound scales of the degradation curve (default: 0 0.25 0.5 0.75 1)",
+    )
+    p.add_argument(
+        "--starts",
+        type=float,
+        nargs="+",
+        default=[0.0],
+        metavar="F",
+        help="standing starts as fractions of the lap (0: the grid); a point scores the mean",
+    )
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=Path("runs/robustness"),
+        metavar="DIR",
+        help="where to write <policy>_<track>.json and .png",
+    )
+    p.add_argument("--json", type=Path, default=None, metavar="FILE", help="report ('-': stdout)")
+    p.add_argument(
+        "--trusted",
+        action="store_true",
+        help="allow SB3/TorchScript files, which run code when loaded (your own only)",
+    )
+    p.set_defaults(handler=robustness_command)
+
+
+def robustness_command(args: argparse.Namespace) -> int:
+    """Run ``slipstream robustness``."""
+    from rich.console import Console  # noqa: PLC0415 - heavy, imported on use
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn  # noqa: PLC0415 - heavy, imported on use
+
+    from agents.loading import load_policy  # noqa: PLC0415 - heavy, imported on use
+    from agents.policy import PolicyError  # noqa: PLC0415 - heavy, imported on use
+    from agents.robustness import evaluate_robustness, save_plot, save_report  # noqa: PLC0415 - heavy, imported on use
+    from tracks import load_track  # noqa: PLC0415 - heavy, imported on use
+
+    if args.laps < 1 or args.random < 0 or args.nature_steps < 0:
+        raise PolicyError("--laps must be >= 1; --random and --nature-steps >= 0")
+    if any(s < 0 for s in args.scales):
+        raise PolicyError("--scales must be >= 0")
+    if any(not 0 <= x < 1 for x in args.starts):
+        raise PolicyError("--starts must be fractions of the lap in [0, 1)")
+    load_track(args.track)  # a clear error before anything heavy
+    policy = load_policy(args.policy, trusted=args.trusted)
+    grid = {name: tuple(getattr(args, name)) for name in GRID}
+    to_stdout = args.json is not None and str(args.json) == "-"
+    console = Console(stderr=to_stdout)
+    with Progress(
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        TextColumn("{task.completed}/{task.total}"),
+        TimeElapsedColumn(),
+        console=console,
+        transient=True,
+    ) as bar:
+        tasks: dict[str, Any] = {}
+
+        def progress(stage: str, done: int, total: int) -> None:
+            if stage not in tasks:
+                tasks[stage] = bar.add_task(stage, total=total)
+            bar.update(tasks[stage], completed=done, total=total)
+
+        report = evaluate_robustness(
+            policy,
+            args.track,
+            laps=args.laps,
+            seed=args.seed,
+            n_random=args.random,
+            nature_steps=args.nature_steps,
+            scales=args.scales,
+            grid=grid,
+            starts=args.starts,
+            progress=progress,
+        )
+    stem = f"{Path(args.policy).stem}_{Path(args.track).stem}".replace(":", "_")
+    json_path = save_report(report, args.out / f"{stem}.json")
+    png_path = save_plot(report, args.out / f"{stem}.png")
+    console.print(summary_table(report.to_dict()))
+    console.print(f"report {json_path}\nplot   {png_path}")
+    if args.json is not None:
+        text = json.dumps(report.to_dict(), indent=2)
+        if to_stdout:
+            sys.stdout.write(text + "\n")
+        else:
+            args.json.write_text(text + "\n", encoding="utf-8")
+    return 0
+
+
+def summary_table(report: dict[str, Any]) -> Any:
+    """A rich table of a robustness report's headline figures."""
+    from rich.table import Table  # noqa: PLC0415 - heavy, imported on use
+
+    table = Table(title=f"{report['policy']} on {report['track']} · effective speed, m/s")
+    table.add_column("measure")
+    table.add_column("score", justify="right")
+    table.add_column("/ nominal", justify="right")
+    nominal = report["nominal"]
+
+    def row(label: str, value: float) -> None:
+        ratio = f"{value / nominal:.2f}" if nominal > 0 else "–"
+        table.add_row(label, f"{value:.3f}", ratio)
+
+    row("nominal", nominal)
+    if report["random"] is not None:
+        row(f"random mean ({report['random']['n']} draws)", report["random"]["mean"])
+    grid = report["grid"]
+    row(f"grid mean ({grid['n']} points)", grid["mean"])
+    row("grid worst-10% mean", grid["worst10_mean"])
+    row("grid worst case", grid["worst"])
+    if report["nature"] is not None:
+        row(f"vs. trained nature ({report['nature']['steps']} steps)", report["nature"]["score"])
+    return table

@@ -1,0 +1,532 @@
+"""Robustness of a racing policy under model uncertainty, and RARL-style nature training.
+
+Protocol (Zhang et al. 2020; DeepRacer's robust evaluation; the anchors' §4.6). The policy
+drives one car alone on a track, deterministic, from a standing start at each of ``starts``
+(fractions of the lap; 0 is the grid) over ``laps`` laps' distance, and each race is scored
+by its **effective speed**, m/s: the race distance divided by the time the car took to
+cover it from its start, or the distance it covered divided by the env's time limit when it
+did not (crashing out early or crawling both score low). A point's score is the mean over
+the starts: one hard corner after the start then decides less of the worst case. Then:
+
+* **nominal**: the unperturbed car;
+* **grid**: every point of friction × motor gain × steering offset × latency (default
+  {0.6, 0.8, 1.0, 1.2} × {0.8, 1.0, 1.2} × {−0.05, 0, 0.05} rad × {0, 1, 2} steps = 108
+  races, the rest nominal): the **worst case**, the **worst-10 % mean** (CVaR₁₀) and
+  **worst / nominal**;
+* **random**: ``n_random`` draws of the whole default set (also mass, steering gain and
+  action noise), :func:`arena.uncertainty.default_config` in ``sample`` mode: the mean;
+* **degradation**: the grid shrunk about nominal by ``s`` (0 … 1): worst case and mean per
+  ``s``, drawn as a PNG;
+* **nature**: a fresh nature (PPO, ``nature_steps`` steps) trained against the frozen policy,
+  acting every step inside the default set with a 10 %-per-step rate limit; the policy's
+  score against it.
+
+:func:`rarl_callback` is the training side: every ``nature_every`` racer steps, a nature PPO
+is trained for ``nature_steps`` against a frozen copy of the racer, and the racers then
+race against a frozen copy of that nature (Pinto et al.'s RARL alternation).
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from agents.policy import Policy, PolicyError
+
+if TYPE_CHECKING:
+    from arena.env import RacingEnv
+
+GRID: dict[str, tuple[float, ...]] = {
+    "friction": (0.6, 0.8, 1.0, 1.2),
+    "motor": (0.8, 1.0, 1.2),
+    "steer_offset": (-0.05, 0.0, 0.05),
+    "latency": (0, 1, 2),
+}
+NOMINAL = {"friction": 1.0, "motor": 1.0, "steer_offset": 0.0, "latency": 0}
+SCALES = (0.0, 0.25, 0.5, 0.75, 1.0)
+WORST_SHARE = 0.1  # the "worst-10 %" tail
+ProgressFn = Callable[[str, int, int], None]
+
+
+# ---- one race -------------------------------------------------------------------------------
+
+
+@dataclass
+class Episode:
+    """One scored race."""
+
+    score: float  # effective speed, m/s
+    finished: bool  # covered the race distance
+    distance: float  # m covered along the track from the start
+    time: float  # s: time to cover the race distance, or the time limit
+    dnf_reason: str | None
+    perturbation: dict[str, float] = field(default_factory=dict)
+
+
+def run_episode(
+    env: RacingEnv,
+    policy: Policy,
+    *,
+    seed: int,
+    perturbation: dict[str, float] | None = None,
+    nature: Any = None,
+    start: float = 0.0,
+) -> Episode:
+    """Race ``policy`` on car 0 of ``env`` (other cars parked) and score it.
+
+    The race ends when the car has covered ``env.race_distance`` metres along the track
+    from where it started (a mid-lap start does not have to reach the line first), or when
+    the env ends it (a DNF or the time limit).
+
+    Args:
+        env: a one-car env, ``fixed`` mode for ``perturbation``, ``adversarial`` for
+            ``nature`` (something with ``act_batch(obs (k, d)) -> (k, a)``).
+        policy: drives car 0.
+        seed: env and policy seed.
+        perturbation: the fixed perturbation (names to values).
+        nature: drives ``nature_car_0``.
+        start: where the grid stands, as a fraction of the lap (0: the start line).
+    """
+    options: dict[str, Any] = {} if perturbation is None else {"perturbation": perturbation}
+    if start:
+        options["start_offset"] = start * env.base_track.length
+    obs, infos = env.reset(seed=seed, options=options)
+    policy.reset(seed)
+    applied: dict[str, float] = infos["car_0"].get("perturbation", {})
+    origin = float(env.race_progress[0])
+    covered, finished = 0.0, False
+    while env.agents:
+        actions: dict[str, Any] = {"car_0": policy.act(obs["car_0"])}
+        if nature is not None and "nature_car_0" in obs:
+            actions["nature_car_0"] = nature.act_batch(np.asarray(obs["nature_car_0"])[None])[0]
+        obs, _, _, _, infos = env.step(actions)
+        applied = infos["car_0"].get("perturbation", applied)
+        covered = float(env.race_progress[0]) - origin
+        if covered >= env.race_distance or env.finished[0]:
+            finished = True
+            break
+    t = env.steps * env.dt if finished else env.max_cycles * env.dt
+    dist = min(covered, env.race_distance)
+    return Episode(
+        score=max(dist, 0.0) / t,
+        finished=finished,
+        distance=round(dist, 3),
+        time=round(t, 3),
+        dnf_reason=env.dnf_reason[0],
+        perturbation=applied,
+    )
+
+
+@dataclass
+class GridPoint:
+    """One grid point: its perturbation, its score (mean over the starts) and the races."""
+
+    perturbation: dict[str, float]
+    score: float  # effective speed, m/s
+    races: list[Episode]  # one per start
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON-able dict (the races without their copy of the perturbation)."""
+        races = [{k: v for k, v in asdict(e).items() if k != "perturbation"} for e in self.races]
+        return {"perturbation": self.perturbation, "score": self.score, "races": races}
+
+
+# ---- the grid -------------------------------------------------------------------------------
+
+
+def grid_points(
+    scale: float = 1.0, grid: dict[str, tuple[float, ...]] | None = None
+) -> list[dict[str, float]]:
+    """The grid's points shrunk about nominal by ``scale`` (latency rounded), deduplicated."""
+    grid = grid or GRID
+    seen: dict[tuple[float, ...], dict[str, float]] = {}
+    for combo in itertools.product(*grid.values()):
+        point = {}
+        for name, value in zip(grid, combo, strict=True):
+            v = NOMINAL[name] + scale * (value - NOMINAL[name])
+            point[name] = float(round(v)) if name == "latency" else round(v, 6)
+        seen.setdefault(tuple(point.values()), point)
+    return list(seen.values())
+
+
+def tail_mean(scores: Sequence[float], share: float = WORST_SHARE) -> float:
+    """Mean of the worst ``share`` of ``scores`` (at least one): CVaR of the lower tail."""
+    ordered = sorted(scores)
+    k = max(1, math.ceil(share * len(ordered)))
+    return float(np.mean(ordered[:k]))
+
+
+def summarise(scores: Sequence[float], nominal: float) -> dict[str, float]:
+    """``mean``, ``worst``, ``worst10_mean`` and ``worst_over_nominal`` of some scores."""
+    worst = float(min(scores))
+    return {
+        "mean": float(np.mean(scores)),
+        "worst": worst,
+        "worst10_mean": tail_mean(scores),
+        "worst_over_nominal": worst / nominal if nominal > 0 else 0.0,
+    }
+
+
+# ---- the whole evaluation -------------------------------------------------------------------
+
+
+@dataclass
+class RobustnessReport:
+    """Every figure of :func:`evaluate_robustness` (scores: effective speed, m/s)."""
+
+    policy: str
+    track: str
+    laps: int
+    seed: int
+    starts: list[float]
+    nominal: float
+    grid: dict[str, float]
+    random: dict[str, float] | None
+    nature: dict[str, Any] | None
+    degradation: list[dict[str, float]]
+    grid_races: list[dict[str, Any]]
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON-able dict."""
+        return asdict(self)
+
+
+def evaluate_robustness(
+    policy: Policy,
+    track: str,
+    *,
+    laps: int = 1,
+    seed: int = 0,
+    n_random: int = 20,
+    nature_steps: int = 20_000,
+    scales: Sequence[float] = SCALES,
+    grid: dict[str, tuple[float, ...]] | None = None,
+    starts: Sequence[float] = (0.0,),
+    progress: ProgressFn | None = None,
+) -> RobustnessReport:
+    """Score ``policy`` nominally, over the grid, on random draws and against a nature.
+
+    Args:
+        policy: the policy (deterministic policies give reproducible figures).
+        track: anything :func:`tracks.load_track` takes.
+        laps: laps per race.
+        seed: seeds the races, the random draws and the nature.
+        n_random: random draws of the default set (0: skip).
+        nature_steps: PPO steps to train the nature (0: skip).
+        scales: bound scales for the degradation curve (0 and 1 are always included).
+        grid: parameter values per axis (default :data:`GRID`).
+        starts: standing starts, as fractions of the lap (0: the grid); every grid point
+            is raced from each and scored by the mean; random draw k starts from
+            ``starts[k % len(starts)]``.
+        progress: called as ``progress(stage, done, total)``.
+    """
+    from arena.env import RacingEnv  # noqa: PLC0415 - heavy, imported on use
+    from arena.uncertainty import (  # noqa: PLC0415 - heavy, imported on use
+        UncertaintyConfig,
+        default_config,
+    )
+
+    if not starts:
+        raise PolicyError("robustness needs at least one start")
+    fixed = RacingEnv(track=track, n_cars=1, laps=laps, uncertainty=UncertaintyConfig("fixed"))
+    tell = progress or (lambda stage, done, total: None)
+    cache: dict[tuple[float, ...], GridPoint] = {}
+
+    def race(point: dict[str, float]) -> GridPoint:
+        key = tuple(point.values())
+        if key not in cache:
+            eps = [
+                run_episode(fixed, policy, seed=seed, perturbation=point, start=x) for x in starts
+            ]
+            cache[key] = GridPoint(point, float(np.mean([e.score for e in eps])), eps)
+        return cache[key]
+
+    try:
+        nominal = race(dict(NOMINAL)).score
+        full = grid_points(1.0, grid)
+        degradation = []
+        curve_scales = sorted(set(scales) | {0.0, 1.0})  # s = 0 is the nominal race
+        total = sum(len(grid_points(s, grid)) for s in curve_scales)
+        done = 0
+        per_scale: dict[float, list[GridPoint]] = {}
+        for s in curve_scales:
+            points = grid_points(s, grid)
+            eps: list[GridPoint] = []
+            for point in points:
+                eps.append(race(point))
+                done += 1
+                tell("grid", done, total)
+            per_scale[s] = eps
+            scores = [e.score for e in eps]
+            degradation.append({"scale": s, **summarise(scores, nominal)})
+        grid_eps = per_scale[1.0]
+    finally:
+        fixed.close()
+    random = None
+    if n_random > 0:
+        env = RacingEnv(track=track, n_cars=1, laps=laps, uncertainty=default_config("sample"))
+        try:
+            scores = []
+            for k in range(n_random):
+                x = starts[k % len(starts)]
+                scores.append(run_episode(env, policy, seed=seed + 1 + k, start=x).score)
+                tell("random", k + 1, n_random)
+        finally:
+            env.close()
+        random = {"n": n_random, **summarise(scores, nominal)}
+    nature = None
+    if nature_steps > 0:
+        nature = nature_attack(
+            policy, track, laps=laps, seed=seed, steps=nature_steps, progress=tell
+        )
+        nature["worst_over_nominal"] = nature["score"] / nominal if nominal > 0 else 0.0
+    name = getattr(policy, "name", type(policy).__name__)
+    return RobustnessReport(
+        policy=name,
+        track=str(track),
+        laps=laps,
+        seed=seed,
+        starts=[float(x) for x in starts],
+        nominal=nominal,
+        grid={"n": len(full), **summarise([e.score for e in grid_eps], nominal)},
+        random=random,
+        nature=nature,
+        degradation=degradation,
+        grid_races=[e.to_dict() for e in grid_eps],
+    )
+
+
+# ---- nature ---------------------------------------------------------------------------------
+
+
+class PolicyDriver:
+    """A :class:`agents.policy.Policy` as a self-play driver (``act_batch`` row by row)."""
+
+    def __init__(self, policy: Policy) -> None:
+        self.policy = policy
+        self.name = getattr(policy, "name", "policy")
+
+    def act_batch(self, obs: NDArray[np.float32]) -> NDArray[np.float32]:
+        """Actions (k, 2) for observations (k, obs_size)."""
+        return np.stack([np.asarray(self.policy.act(row), dtype=np.float32) for row in obs])
+
+
+def _nature_ppo(vec_env: Any, seed: int, tb_dir: Path | None = None) -> Any:
+    """A small PPO for a nature (its actions: the perturbation, every step)."""
+    from stable_baselines3 import PPO  # noqa: PLC0415 - heavy, imported on use
+
+    return PPO(
+        "MlpPolicy",
+        vec_env,
+        n_steps=128,
+        batch_size=min(256, 128 * vec_env.num_envs),
+        n_epochs=5,
+        learning_rate=3e-4,
+        gamma=0.99,
+        ent_coef=0.0,
+        policy_kwargs={"net_arch": {"pi": [64, 64], "vf": [64, 64]}, "log_std_init": -0.5},
+        tensorboard_log=None if tb_dir is None else str(tb_dir),
+        seed=seed,
+        device="cpu",
+        verbose=0,
+    )
+
+
+def nature_attack(
+    policy: Policy,
+    track: str,
+    *,
+    laps: int = 1,
+    seed: int = 0,
+    steps: int = 20_000,
+    episodes: int = 3,
+    progress: ProgressFn | None = None,
+) -> dict[str, Any]:
+    """Train a fresh nature against the frozen ``policy``, then score the policy against it.
+
+    The nature (default set, acting every step, rate-limited) learns with PPO on minus the
+    car's reward for ``steps`` steps from random starts; then ``episodes`` races from the grid
+    (seeds ``seed``, ``seed + 1`` …) with the nature deterministic.
+
+    Returns:
+        ``score`` (mean effective speed, m/s), ``scores``, ``steps`` and ``mean_perturbation``
+        (the nature's average choice per parameter in its races).
+    """
+    from agents.selfplay import SelfPlayVecEnv  # noqa: PLC0415 - heavy, imported on use
+    from arena.env import RacingEnv  # noqa: PLC0415 - heavy, imported on use
+    from arena.uncertainty import default_config  # noqa: PLC0415 - heavy, imported on use
+
+    cfg = default_config("adversarial")
+    vec = SelfPlayVecEnv(
+        [track],
+        n_envs=4,
+        n_cars=1,
+        n_learners=1,
+        laps=laps,
+        seed=seed,
+        env_kwargs={"uncertainty": cfg},
+        role="nature",
+    )
+    vec.racer = PolicyDriver(policy)
+    try:
+        model = _nature_ppo(vec, seed)
+        callback = _ProgressCallback(progress, steps) if progress is not None else None
+        model.learn(total_timesteps=steps, callback=callback)
+        frozen = _freeze(model.policy, "nature")
+    finally:
+        vec.close()
+    env = RacingEnv(track=track, n_cars=1, laps=laps, uncertainty=cfg)
+    try:
+        eps = [run_episode(env, policy, seed=seed + k, nature=frozen) for k in range(episodes)]
+    finally:
+        env.close()
+    names = [k for k in eps[0].perturbation if k in cfg.free_names]
+    return {
+        "steps": steps,
+        "score": float(np.mean([e.score for e in eps])),
+        "scores": [e.score for e in eps],
+        "final_perturbation": {k: float(np.mean([e.perturbation[k] for e in eps])) for k in names},
+    }
+
+
+def _freeze(policy: Any, name: str) -> Any:
+    """A frozen copy of an SB3 policy straight after ``learn()``.
+
+    The last minibatch's action distribution still holds tensors of the autograd graph,
+    which ``copy.deepcopy`` refuses; it is rebuilt on the next forward pass anyway.
+    """
+    from agents.selfplay import SB3Driver  # noqa: PLC0415 - heavy, imported on use
+
+    dist = getattr(policy, "action_dist", None)
+    if dist is not None and hasattr(dist, "distribution"):
+        dist.distribution = None
+    return SB3Driver.frozen(policy, name)
+
+
+def _ProgressCallback(progress: ProgressFn, total: int) -> Any:
+    from stable_baselines3.common.callbacks import BaseCallback  # noqa: PLC0415 - heavy
+
+    class Progress(BaseCallback):
+        def _on_step(self) -> bool:
+            progress("nature", min(self.num_timesteps, total), total)
+            return True
+
+    return Progress()
+
+
+# ---- training side --------------------------------------------------------------------------
+
+
+def load_weights(model: Any, path: Path) -> None:
+    """Copy a Slipstream checkpoint's policy weights into an SB3 PPO ``model`` (fine-tuning).
+
+    Raises:
+        PolicyError: the checkpoint's network does not fit the model's.
+    """
+    import torch  # noqa: PLC0415 - heavy, imported on use
+
+    from agents.checkpoint import read_checkpoint  # noqa: PLC0415 - heavy, imported on use
+
+    _, tensors = read_checkpoint(path)
+    own = model.policy.state_dict()
+    for name, value in tensors.items():
+        if name not in own or tuple(own[name].shape) != tuple(value.shape):
+            raise PolicyError(f"{path}: tensor {name} does not fit the model being trained")
+    model.policy.load_state_dict({k: torch.as_tensor(v) for k, v in tensors.items()}, strict=False)
+
+
+def rarl_callback(
+    args: Any, racer_env: Any, env_kwargs: dict[str, Any], run_dir: Path, monitor: Any
+) -> Any:
+    """``monitor`` plus RARL's alternation for ``slipstream train --uncertainty adversarial``.
+
+    Every ``args.nature_every`` racer steps: a nature PPO (its own race copies, the learner
+    cars driven by a frozen copy of the racer) trains for ``args.nature_steps``; then the
+    racers' natures are driven by a frozen copy of it. The nature is saved next to the run
+    as ``nature_sb3.zip`` (stable-baselines3's format: your own file, trusted).
+    """
+    from stable_baselines3.common.callbacks import BaseCallback, CallbackList  # noqa: PLC0415
+
+    from agents.selfplay import SB3Driver, SelfPlayVecEnv  # noqa: PLC0415 - heavy
+
+    nature_env = SelfPlayVecEnv(
+        args.tracks,
+        n_envs=max(1, args.n_envs // 2),
+        n_cars=args.n_cars,
+        n_learners=args.n_learners,
+        laps=args.train_laps,
+        randomise=args.randomise,
+        reward_scale=args.reward_scale,
+        dnf_penalty=args.dnf_penalty,
+        seed=args.seed + 10_000,
+        env_kwargs=env_kwargs,
+        role="nature",
+    )
+    nature_env.pool = racer_env.pool  # the same opponents
+    nature = _nature_ppo(nature_env, args.seed, run_dir / "tb_nature")
+
+    class Alternate(BaseCallback):
+        def __init__(self) -> None:
+            super().__init__()
+            self.next = args.nature_every
+
+        def _on_step(self) -> bool:
+            if self.num_timesteps >= self.next:
+                self.next += args.nature_every
+                nature_env.racer = SB3Driver.frozen(self.model.policy, "racer")
+                nature.learn(args.nature_steps, reset_num_timesteps=False, tb_log_name="nature")
+                racer_env.nature = _freeze(nature.policy, "nature")
+            return True
+
+        def _on_training_end(self) -> None:
+            nature.save(run_dir / "nature_sb3.zip")
+            nature_env.close()
+
+    return CallbackList([monitor, Alternate()])
+
+
+# ---- output ---------------------------------------------------------------------------------
+
+
+def save_plot(report: RobustnessReport, path: Path) -> Path:
+    """The degradation curve (worst case and mean against the bound scale) as a PNG."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: PLC0415 - heavy
+    from matplotlib.figure import Figure  # noqa: PLC0415 - heavy
+
+    fig = Figure(figsize=(6.0, 4.0), dpi=100)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    s = [row["scale"] for row in report.degradation]
+    ax.plot(s, [row["mean"] for row in report.degradation], "o-", label="grid mean")
+    ax.plot(s, [row["worst10_mean"] for row in report.degradation], "s-", label="worst-10 % mean")
+    ax.plot(s, [row["worst"] for row in report.degradation], "v-", label="worst case")
+    ax.axhline(report.nominal, color="grey", ls="--", lw=1, label="nominal")
+    if report.nature is not None:
+        ax.axhline(
+            report.nature["score"], color="crimson", ls=":", lw=1, label="vs. trained nature"
+        )
+    ax.set_xlabel("bound scale s (0: nominal, 1: full grid)")
+    ax.set_ylabel("effective speed, m/s")
+    ax.set_ylim(bottom=0.0)
+    ax.set_title(f"{report.policy} on {report.track}: robustness")
+    ax.legend(fontsize=8, loc="lower left")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    return path
+
+
+def save_report(report: RobustnessReport, path: Path) -> Path:
+    """The report as JSON."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(report.to_dict(), indent=2) + "\n", encoding="utf-8")
+    return path

@@ -1,0 +1,14 @@
+"""The JSON API (``/api/...``), one router per resource under :mod:`leaderboard.api.routes`.
+
+OpenAPI documentation is served at ``/docs`` (Swagger UI) and ``/openapi.json``.
+"""
+
+from fastapi import APIRouter
+
+from leaderboard.api.routes import health, leaderboard, races, submissions, tracks, users
+
+api_router = APIRouter(prefix="/api")
+for _module in (leaderboard, submissions, races, tracks, users, health):
+    api_router.include_router(_module.router)
+
+__all__ = ["api_router"]

@@ -1,0 +1,120 @@
+"""Submissions: upload (multipart), new versions, withdraw (owner only), and reading them."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, File, Query, UploadFile, status
+from pydantic import BaseModel
+from sqlalchemy import select
+
+from leaderboard import queries, uploads
+from leaderboard.api.deps import CurrentUser, PageDep, SessionDep, SettingsDep
+from leaderboard.errors import NotFound
+from leaderboard.models import Race, RaceEntry, Submission, SubmissionVersion
+
+router = APIRouter(tags=["submissions"])
+
+BundleFile = Annotated[UploadFile, File(description="the bundle zip (manifest.json + policy)")]
+
+
+class Uploaded(BaseModel):
+    """An accepted upload: the version stored and its validation race."""
+
+    submission_id: int
+    name: str
+    version: int
+    status: str
+    validation_race_id: int | None
+    url: str
+
+
+def _uploaded(session: SessionDep, version: SubmissionVersion) -> Uploaded:
+    race_id = session.scalar(
+        select(RaceEntry.race_id)
+        .join(Race, Race.id == RaceEntry.race_id)
+        .where(RaceEntry.version_id == version.id, Race.kind == "validation")
+    )
+    return Uploaded(
+        submission_id=version.submission_id,
+        name=version.submission.name,
+        version=version.version,
+        status=version.status,
+        validation_race_id=race_id,
+        url=f"/api/submissions/{version.submission_id}",
+    )
+
+
+@router.post("/submissions", response_model=Uploaded, status_code=status.HTTP_201_CREATED)
+def upload_submission(
+    session: SessionDep, settings: SettingsDep, user: CurrentUser, file: BundleFile
+) -> Uploaded:
+    """Upload a bundle. Its manifest's ``name`` picks one of your submissions (a new name
+    creates one, a known one adds a version). The bundle is validated now (422 with the
+    reason if not) and raced in a validation race before it is ranked."""
+    version = uploads.upload(session, settings, user=user, stream=file.file)
+    session.commit()
+    return _uploaded(session, version)
+
+
+@router.post(
+    "/submissions/{submission_id}/versions",
+    response_model=Uploaded,
+    status_code=status.HTTP_201_CREATED,
+)
+def upload_version(
+    session: SessionDep,
+    settings: SettingsDep,
+    user: CurrentUser,
+    submission_id: int,
+    file: BundleFile,
+) -> Uploaded:
+    """Add a version to one of your submissions (403 if it is someone else's)."""
+    uploads.owned_submission(session, user=user, submission_id=submission_id)
+    version = uploads.upload(
+        session, settings, user=user, stream=file.file, submission_id=submission_id
+    )
+    session.commit()
+    return _uploaded(session, version)
+
+
+@router.delete("/submissions/{submission_id}", response_model=queries.SubmissionDetail)
+def withdraw_submission(
+    session: SessionDep, user: CurrentUser, submission_id: int
+) -> queries.SubmissionDetail:
+    """Withdraw one of your submissions from the leaderboard (403 if someone else's)."""
+    uploads.withdraw(session, user=user, submission_id=submission_id)
+    session.commit()
+    return queries.submission_detail(session, submission_id)
+
+
+@router.get("/submissions", response_model=queries.Page[queries.SubmissionSummary])
+def list_submissions(
+    session: SessionDep,
+    pages: PageDep,
+    author: Annotated[str | None, Query(description="only this user's")] = None,
+) -> queries.Page[queries.SubmissionSummary]:
+    """All submissions, newest first."""
+    return queries.submissions(session, page=pages.page, per_page=pages.per_page, author=author)
+
+
+@router.get("/submissions/{submission_id}", response_model=queries.SubmissionDetail)
+def get_submission(
+    session: SessionDep,
+    submission_id: int,
+    races: Annotated[int, Query(ge=0, le=200, description="recent races included")] = 20,
+) -> queries.SubmissionDetail:
+    """A submission: rating, rank, versions, recent races, rating history."""
+    return queries.submission_detail(session, submission_id, races=races)
+
+
+@router.get("/submissions/{submission_id}/races", response_model=queries.Page[queries.RaceSummary])
+def submission_races(
+    session: SessionDep, submission_id: int, pages: PageDep
+) -> queries.Page[queries.RaceSummary]:
+    """The races a submission took part in, newest first."""
+    if session.get(Submission, submission_id) is None:
+        raise NotFound(f"no submission {submission_id}")
+    return queries.submission_races(
+        session, submission_id, page=pages.page, per_page=pages.per_page
+    )

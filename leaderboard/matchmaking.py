@@ -1,0 +1,204 @@
+"""Matchmaking: which submissions race, where, and when (after Kaggle and Halite III).
+
+* A new version first gets a **validation race** (unrated, queued ahead of everything): one
+  lap on ``settings.validation_track`` against the ``settings.validation_opponent`` baseline.
+  It must drive without a policy failure (crash, invalid action, deadline) to enter the pool.
+* **Ranked races** then draw from the active submissions. The *seed* submission is drawn
+  with weight (σ/σ₀)² / (1 + races + 2·queued): under-played and uncertain submissions race
+  most, and one with races already queued waits its turn. Its opponents are drawn from the
+  ones nearest in μ, within a window that is usually small and sometimes wide (Halite's
+  ``5 / (0.01 + U)^0.65``), so ratings meet similar ratings without forming closed groups.
+* 2–8 cars (``settings.min_cars``..``settings.max_cars``, never more than the pool), the grid
+  shuffled, on the track used least in the last 200 ranked races (ties at random), with a
+  fresh seed.
+"""
+
+from __future__ import annotations
+
+import random
+from collections import Counter
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session
+
+from leaderboard.models import SIGMA0, Race, RaceEntry, Submission, SubmissionVersion
+from leaderboard.queue import enqueue, pending
+from leaderboard.settings import Settings
+
+VALIDATION_PRIORITY = 0
+RANKED_PRIORITY = 10
+RECENT_RACES = 200  # races looked at to vary the tracks
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """An active submission as matchmaking sees it."""
+
+    submission_id: int
+    version_id: int
+    name: str
+    source: str
+    mu: float
+    sigma: float
+    races: int
+    queued: int
+
+    @property
+    def weight(self) -> float:
+        """Seed weight: uncertain and under-played submissions first."""
+        return (self.sigma / SIGMA0) ** 2 / (1 + self.races + 2 * self.queued)
+
+
+def schedule_validation(session: Session, settings: Settings, version: SubmissionVersion) -> Race:
+    """Queue the validation race of a new version (one lap against a baseline)."""
+    sub = session.get(Submission, version.submission_id)
+    name = sub.name if sub is not None else f"submission-{version.submission_id}"
+    race = Race(
+        kind="validation",
+        track=settings.validation_track,
+        seed=random.randrange(2**31),
+        laps=1,
+        penalties=False,
+        entries=[
+            RaceEntry(
+                car=0,
+                submission_id=version.submission_id,
+                version_id=version.id,
+                name=f"{name}:v{version.version}",
+                source=version.source,
+            ),
+            RaceEntry(
+                car=1,
+                name=settings.validation_opponent,
+                source=settings.validation_opponent,
+            ),
+        ],
+    )
+    session.add(race)
+    enqueue(session, race, priority=VALIDATION_PRIORITY, max_attempts=settings.max_attempts)
+    return race
+
+
+def candidates(session: Session) -> list[Candidate]:
+    """Active submissions with a validated version, with their queued-race counts."""
+    queued = dict(
+        session.execute(
+            select(RaceEntry.submission_id, func.count())
+            .join(Race, Race.id == RaceEntry.race_id)
+            .where(Race.status.in_(("queued", "running")), RaceEntry.submission_id.is_not(None))
+            .group_by(RaceEntry.submission_id)
+        ).all()
+    )
+    rows = session.execute(
+        select(Submission, SubmissionVersion)
+        .join(SubmissionVersion, SubmissionVersion.id == Submission.active_version_id)
+        .where(Submission.status == "active")
+    ).all()
+    return [
+        Candidate(
+            submission_id=sub.id,
+            version_id=ver.id,
+            name=f"{sub.name}:v{ver.version}",
+            source=ver.source,
+            mu=sub.mu,
+            sigma=sub.sigma,
+            races=sub.races,
+            queued=int(queued.get(sub.id, 0)),
+        )
+        for sub, ver in rows
+    ]
+
+
+def pick_entrants(
+    pool: Sequence[Candidate], rng: random.Random, *, min_cars: int = 2, max_cars: int = 4
+) -> list[Candidate]:
+    """Draw one race's entrants: a seed by weight, then opponents of similar μ.
+
+    Returns an empty list if the pool has fewer than ``min_cars`` submissions.
+    """
+    if len(pool) < max(min_cars, 2):
+        return []
+    seed = rng.choices(list(pool), weights=[c.weight for c in pool], k=1)[0]
+    n_cars = rng.randint(min_cars, min(max_cars, len(pool)))
+    others = sorted(
+        (c for c in pool if c.submission_id != seed.submission_id),
+        key=lambda c: (abs(c.mu - seed.mu), rng.random()),
+    )
+    window = int(5 / (0.01 + rng.random()) ** 0.65)
+    window = min(len(others), max(n_cars - 1, window))
+    chosen = [seed, *rng.sample(others[:window], n_cars - 1)]
+    rng.shuffle(chosen)  # the grid order
+    return chosen
+
+
+def pick_track(session: Session, tracks: Sequence[str], rng: random.Random) -> str:
+    """The track used least in the last races (ties broken at random)."""
+    recent = (
+        select(Race.track)
+        .where(Race.kind == "ranked")
+        .order_by(Race.id.desc())
+        .limit(RECENT_RACES)
+        .subquery()
+    )
+    used: Counter[str] = Counter(
+        dict(session.execute(select(recent.c.track, func.count()).group_by(recent.c.track)).all())
+    )
+    fewest = min(used.get(t, 0) for t in tracks)
+    return rng.choice([t for t in tracks if used.get(t, 0) == fewest])
+
+
+def track_pool(settings: Settings) -> list[str]:
+    """Tracks for ranked races: ``settings.tracks``, else the built-in library."""
+    if settings.tracks:
+        return list(settings.tracks)
+    from tracks import list_tracks  # noqa: PLC0415 - numpy/scipy only; loaded when scheduling
+
+    return list_tracks()
+
+
+def schedule_ranked(
+    session: Session, settings: Settings, n_races: int, rng: random.Random | None = None
+) -> list[Race]:
+    """Queue up to ``n_races`` ranked races (fewer if the pool is too small)."""
+    rng = rng or random.Random()
+    tracks = track_pool(settings)
+    races: list[Race] = []
+    for _ in range(n_races):
+        pool = candidates(session)
+        entrants = pick_entrants(pool, rng, min_cars=settings.min_cars, max_cars=settings.max_cars)
+        if not entrants:
+            break
+        race = Race(
+            kind="ranked",
+            track=pick_track(session, tracks, rng),
+            seed=rng.randrange(2**31),
+            laps=settings.race_laps,
+            penalties=True,
+            entries=[
+                RaceEntry(
+                    car=i,
+                    submission_id=c.submission_id,
+                    version_id=c.version_id,
+                    name=c.name,
+                    source=c.source,
+                )
+                for i, c in enumerate(entrants)
+            ],
+        )
+        session.add(race)
+        enqueue(session, race, priority=RANKED_PRIORITY, max_attempts=settings.max_attempts)
+        session.flush()
+        races.append(race)
+    return races
+
+
+def top_up(
+    session: Session, settings: Settings, target: int, rng: random.Random | None = None
+) -> int:
+    """Queue ranked races until ``target`` jobs are waiting or running; returns how many."""
+    missing = target - pending(session)
+    if missing <= 0:
+        return 0
+    return len(schedule_ranked(session, settings, missing, rng))

@@ -1,0 +1,172 @@
+"""Storing a finished race: the result JSON, each car's outcome, then its consequences.
+
+A ranked race updates ratings (:mod:`leaderboard.ratings`) and track records; a validation
+race decides whether the new version may enter ranked races. Everything happens in the
+caller's transaction: :func:`leaderboard.queue.complete` calls :func:`store_result` right after
+it has checked the worker still holds the job's lease, and commits once.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Mapping
+from typing import Any
+
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from leaderboard.models import (
+    SIGMA0,
+    Race,
+    RaceEntry,
+    Submission,
+    SubmissionVersion,
+    TrackRecord,
+    utcnow,
+)
+from leaderboard.ratings import ordinal, rate_race
+
+# DNF reasons that mean the policy itself is broken: a validation race with one fails it.
+POLICY_FAILURES = frozenset({"error", "invalid", "timeout"})
+_CAR = re.compile(r"^car_(\d+)$")
+
+
+def store_result(
+    session: Session,
+    race: Race,
+    result: Mapping[str, Any],
+    *,
+    replay_path: str | None = None,
+    viser_path: str | None = None,
+    sandbox: str | None = None,
+    duration_s: float | None = None,
+) -> None:
+    """Record a race result (``RaceResult.to_dict()``) and apply what follows from it.
+
+    Args:
+        session: the transaction that also marks the job done.
+        race: the race, with its entries (car ``i`` is ``car_i`` in the result).
+        result: the race result document.
+        replay_path: the raw replay log (``.replay.json.gz``) the worker wrote.
+        viser_path: the 3D replay (``.viser``), if recorded.
+        sandbox: how the policies were isolated (``bwrap``, ``seccomp`` or ``none``).
+        duration_s: wall time of the race, s.
+    """
+    race.result = dict(result)
+    race.status = "finished"
+    race.finished_at = utcnow()
+    race.replay_path = replay_path
+    race.viser_path = viser_path
+    race.sandbox = sandbox
+    race.duration_s = duration_s
+    race.error = None
+    by_car = {e.car: e for e in race.entries}
+    for car in result.get("cars", []):
+        match = _CAR.match(str(car.get("agent", "")))
+        entry = by_car.get(int(match.group(1))) if match else None
+        if entry is not None:
+            _fill_entry(entry, car)
+    if race.kind == "validation":
+        _judge_validation(session, race)
+    else:
+        rate_race(session, race)
+        _update_records(session, race)
+
+
+def _fill_entry(entry: RaceEntry, car: Mapping[str, Any]) -> None:
+    entry.position = int(car["position"])
+    entry.status = str(car["status"])
+    entry.dnf_reason = car.get("dnf_reason")
+    entry.laps_completed = int(car.get("laps_completed", 0))
+    entry.best_lap = car.get("best_lap")
+    entry.total_time = car.get("total_time")
+    entry.lap_times = [float(t) for t in car.get("lap_times", [])]
+    entry.collisions = int(car.get("collisions", 0))
+    entry.at_fault_collisions = int(car.get("at_fault_collisions", 0))
+    entry.off_track = int(car.get("off_track", 0))
+
+
+def _judge_validation(session: Session, race: Race) -> None:
+    """Validated if each version in the race drove without a policy failure."""
+    for entry in race.entries:
+        if entry.version_id is None:
+            continue
+        version = session.get(SubmissionVersion, entry.version_id)
+        if version is None or version.status != "pending":
+            continue
+        if entry.dnf_reason in POLICY_FAILURES:
+            reject_version(session, version, f"validation race {race.id}: dnf ({entry.dnf_reason})")
+        else:
+            accept_version(session, version)
+
+
+def accept_version(session: Session, version: SubmissionVersion) -> None:
+    """Make a validated version the one its submission races with.
+
+    A newer version keeps the submission's μ but starts again from the initial σ, so
+    matchmaking favours it until its rating settles.
+    """
+    version.status = "validated"
+    version.error = None
+    sub = session.get(Submission, version.submission_id)
+    if sub is None:
+        return
+    current = (
+        session.get(SubmissionVersion, sub.active_version_id) if sub.active_version_id else None
+    )
+    if current is None or current.version < version.version:
+        if current is not None:
+            sub.sigma = max(sub.sigma, SIGMA0)
+            sub.ordinal = ordinal(sub.mu, sub.sigma)
+        sub.active_version_id = version.id
+    if sub.status in ("pending", "rejected"):
+        sub.status = "active"
+    sub.updated_at = utcnow()
+
+
+def reject_version(session: Session, version: SubmissionVersion, reason: str) -> None:
+    """Mark a version rejected; a submission with no validated version is rejected too."""
+    version.status = "rejected"
+    version.error = reason
+    sub = session.get(Submission, version.submission_id)
+    if sub is not None and sub.active_version_id is None and sub.status == "pending":
+        sub.status = "rejected"
+        sub.updated_at = utcnow()
+
+
+def _update_records(session: Session, race: Race) -> None:
+    """Keep each submission's best lap per track."""
+    for entry in race.entries:
+        if entry.submission_id is None or entry.best_lap is None:
+            continue
+        record = session.scalar(
+            select(TrackRecord).where(
+                TrackRecord.track == race.track, TrackRecord.submission_id == entry.submission_id
+            )
+        )
+        if record is None:
+            session.add(
+                TrackRecord(
+                    track=race.track,
+                    submission_id=entry.submission_id,
+                    version_id=entry.version_id,
+                    race_id=race.id,
+                    best_lap=entry.best_lap,
+                )
+            )
+        elif entry.best_lap < record.best_lap:
+            record.best_lap = entry.best_lap
+            record.version_id = entry.version_id
+            record.race_id = race.id
+            record.set_at = utcnow()
+
+
+def fail_race(session: Session, race: Race, error: str) -> None:
+    """Mark a race failed for good; a validation race that cannot run rejects its versions."""
+    race.status, race.error, race.finished_at = "failed", error, utcnow()
+    if race.kind != "validation":
+        return
+    for entry in race.entries:
+        version = session.get(SubmissionVersion, entry.version_id) if entry.version_id else None
+        if version is not None and version.status == "pending":
+            reject_version(session, version, f"validation race {race.id} failed: {error}")

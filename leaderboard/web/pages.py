@@ -1,0 +1,276 @@
+"""HTML pages of the leaderboard, server-rendered with Jinja2 (no JavaScript framework).
+
+============================  ============================================  =====================
+page                          shows                                         JSON twin (``/api``)
+============================  ============================================  =====================
+``/``                         leaderboard: rank, name, author, ordinal, μ,  ``/leaderboard``
+                              σ, races, win rate (paginated)
+``/submissions/{id}``         versions, races, rating history chart         ``/submissions/{id}``
+``/races``                    all races, newest first (paginated)           ``/races``
+``/races/{id}``               results, lap-time chart, embedded 3D replay   ``/races/{id}``
+``/tracks``                   the race tracks, race counts, lap records     ``/tracks``
+``/tracks/{name}``            track plot, records, recent races             ``/tracks/{name}``
+``/tracks/{name}/plot.png``   the track plot image (cached in data_dir)
+``/users/{name}``             a user's submissions                          ``/users/{name}``
+============================  ============================================  =====================
+
+Pages read through :mod:`leaderboard.queries` (the same functions as the JSON API), so the
+two never disagree.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Coroutine
+from datetime import datetime
+from functools import cache
+from pathlib import Path
+from typing import Any
+from urllib.parse import quote
+
+from fastapi import APIRouter, Request
+from fastapi.responses import FileResponse, HTMLResponse, Response
+from fastapi.routing import APIRoute
+from fastapi.templating import Jinja2Templates
+from markupsafe import Markup
+
+from leaderboard import auth, queries
+from leaderboard.api.deps import PageDep, SessionDep, SettingsDep
+from leaderboard.errors import NotFound
+from leaderboard.matchmaking import track_pool
+from leaderboard.models import MU0, SIGMA0
+from leaderboard.web.charts import car_hex, lap_time_svg, rating_history_svg
+from leaderboard.web.trackplots import track_image
+from tracks import list_tracks, load_track
+from tracks.errors import TrackError
+from tracks.library import RANDOM_PREFIX
+
+WEB_DIR = Path(__file__).parent
+STATIC_DIR = WEB_DIR / "static"
+TEMPLATES_DIR = WEB_DIR / "templates"
+
+
+class _PageRoute(APIRoute):
+    """A page route that answers a missing object with the site's 404 page (not JSON)."""
+
+    def get_route_handler(self) -> Callable[[Request], Coroutine[Any, Any, Response]]:
+        handler = super().get_route_handler()
+
+        async def handle(request: Request) -> Response:
+            try:
+                return await handler(request)
+            except (NotFound, TrackError) as err:
+                context = {"status_code": 404, "message": str(err)}
+                return templates.TemplateResponse(request, "error.html", context, status_code=404)
+
+        return handle
+
+
+web_router = APIRouter(include_in_schema=False, route_class=_PageRoute)
+
+
+def _pct(value: float | None) -> str:
+    """``0.4567`` → ``"45.7%"``; None → an em dash."""
+    return "—" if value is None else f"{100.0 * value:.1f}%"
+
+
+def _secs(value: float | None) -> str:
+    """Seconds with millisecond precision, ``m:ss.sss`` from a minute up; None → a dash."""
+    if value is None or not math.isfinite(value):
+        return "—"
+    if value < 60.0:
+        return f"{value:.3f} s"
+    minutes, seconds = divmod(value, 60.0)
+    return f"{int(minutes)}:{seconds:06.3f}"
+
+
+def _when(value: datetime | str | None) -> str:
+    """A stored UTC time as ``YYYY-MM-DD HH:MM``; None → a dash."""
+    if value is None:
+        return "—"
+    if isinstance(value, str):
+        value = datetime.fromisoformat(value)
+    return value.strftime("%Y-%m-%d %H:%M")
+
+
+def _size(n_bytes: int | None) -> str:
+    """A byte count in KiB/MiB (0, a baseline with no file, shows as a dash)."""
+    if not n_bytes:
+        return "—"
+    if n_bytes < 1024 * 1024:
+        return f"{n_bytes / 1024:.1f} KiB"
+    return f"{n_bytes / (1024 * 1024):.1f} MiB"
+
+
+@cache
+def _library() -> frozenset[str]:
+    """The built-in track names (read once: the library does not change while serving)."""
+    return frozenset(list_tracks())
+
+
+def _track_link(name: str) -> Markup:
+    """A link to a track's page (library and generated tracks), else the escaped name."""
+    if name in _library() or name.startswith(RANDOM_PREFIX):
+        return Markup('<a href="/tracks/{0}">{1}</a>').format(quote(name, safe=""), name)
+    return Markup("{0}").format(name)
+
+
+def make_templates() -> Jinja2Templates:
+    """The Jinja2 environment with the site's filters (autoescaping on)."""
+    templates = Jinja2Templates(directory=TEMPLATES_DIR)
+    filters: dict[str, Any] = {
+        "pct": _pct,
+        "secs": _secs,
+        "when": _when,
+        "size": _size,
+        "track_link": _track_link,
+        "car_colour": car_hex,
+    }
+    templates.env.filters.update(filters)
+    return templates
+
+
+templates = make_templates()
+
+
+def _render(request: Request, name: str, context: dict[str, Any]) -> HTMLResponse:
+    """Render template ``name`` with ``context``."""
+    return templates.TemplateResponse(request, name, context)
+
+
+def _pager(page: queries.Page[Any], base_url: str) -> dict[str, Any]:
+    """Template variables of ``_pager.html`` for a page of rows."""
+    sep = "&" if "?" in base_url else "?"
+    return {"page": page.page, "pages": page.pages, "total": page.total, "base_url": base_url + sep}
+
+
+def viewer_url(viser_url: str) -> str:
+    """The embedded player's URL for a ``.viser`` file served at ``viser_url``.
+
+    >>> viewer_url("/replays/7.viser")
+    '/viewer/?playbackPath=/replays/7.viser&hideViserLogo'
+    """
+    return f"/viewer/?playbackPath={quote(viser_url, safe='/')}&hideViserLogo"
+
+
+@web_router.get("/", response_class=HTMLResponse)
+def leaderboard_page(request: Request, session: SessionDep, pages: PageDep) -> HTMLResponse:
+    """The leaderboard: active submissions by ordinal, best first."""
+    page = queries.leaderboard(session, page=pages.page, per_page=pages.per_page)
+    context = {"nav": "leaderboard", "rows": page.items, "api_url": "/api/leaderboard"}
+    return _render(request, "leaderboard.html", context | _pager(page, "/"))
+
+
+@web_router.get("/races", response_class=HTMLResponse)
+def races_page(request: Request, session: SessionDep, pages: PageDep) -> HTMLResponse:
+    """All races, newest first."""
+    page = queries.races(session, page=pages.page, per_page=pages.per_page)
+    context = {"nav": "races", "races": page.items, "api_url": "/api/races"}
+    return _render(request, "races.html", context | _pager(page, "/races"))
+
+
+@web_router.get("/races/{race_id}", response_class=HTMLResponse)
+def race_page(
+    request: Request, session: SessionDep, settings: SettingsDep, race_id: int
+) -> HTMLResponse:
+    """One race: results, lap-time chart and the embedded 3D replay."""
+    race = queries.race_detail(session, race_id)
+    # Embed the player only when the file is really there (a worker may have failed to write it).
+    has_viser = (
+        race.viser_url is not None
+        and (Path(settings.replays_dir) / Path(race.viser_url).name).is_file()
+    )
+    laps = [(e.name, e.lap_times) for e in race.entries]
+    context = {
+        "nav": "races",
+        "race": race,
+        "entries": sorted(race.entries, key=lambda e: (e.position is None, e.position, e.car)),
+        "replay_url": viewer_url(race.viser_url) if has_viser and race.viser_url else None,
+        "raw_replay_url": race.replay_url,
+        "laps_svg": lap_time_svg(laps),
+        "api_url": f"/api/races/{race_id}",
+    }
+    return _render(request, "race.html", context)
+
+
+@web_router.get("/submissions/{submission_id}", response_class=HTMLResponse)
+def submission_page(
+    request: Request, session: SessionDep, pages: PageDep, submission_id: int
+) -> HTMLResponse:
+    """One submission: facts, rating history chart, versions and races."""
+    sub = queries.submission_detail(session, submission_id, races=0)
+    races = queries.submission_races(
+        session, submission_id, page=pages.page, per_page=pages.per_page
+    )
+    # The chart starts from the prior (race 0), then one point after each rated race.
+    history = [(MU0, SIGMA0)] + [(p.mu, p.sigma) for p in sub.rating_history]
+    context = {
+        "sub": sub,
+        "versions": sub.versions,
+        "races": races.items,
+        "history_svg": rating_history_svg(history),
+        "api_url": f"/api/submissions/{submission_id}",
+    }
+    return _render(
+        request, "submission.html", context | _pager(races, f"/submissions/{submission_id}")
+    )
+
+
+def _track_facts(name: str) -> dict[str, Any]:
+    """Length (m), corner count and a one-line summary of a track, or blanks if unknown."""
+    try:
+        track = load_track(name)
+    except TrackError:
+        return {"length": None, "corners": None, "summary": None}
+    from tracks.plot import default_title  # noqa: PLC0415 - pulls in matplotlib
+
+    return {"length": track.length, "corners": track.n_corners, "summary": default_title(track)}
+
+
+@web_router.get("/tracks", response_class=HTMLResponse)
+def tracks_page(request: Request, session: SessionDep, settings: SettingsDep) -> HTMLResponse:
+    """The tracks ranked races use, with race counts and lap records."""
+    rows = [
+        t.model_dump() | _track_facts(t.name) for t in queries.tracks(session, track_pool(settings))
+    ]
+    context = {"nav": "tracks", "tracks": rows, "api_url": "/api/tracks"}
+    return _render(request, "tracks.html", context)
+
+
+@web_router.get("/tracks/{name}", response_class=HTMLResponse)
+def track_page(
+    request: Request, session: SessionDep, settings: SettingsDep, name: str
+) -> HTMLResponse:
+    """One track: its plot, the lap records and recent races."""
+    detail = queries.track_detail(session, name, known=track_pool(settings))
+    facts = _track_facts(name)
+    context = {
+        "nav": "tracks",
+        "track": detail.model_dump() | facts,
+        "records": detail.records,
+        "races": detail.recent_races,
+        "offset": 0,
+        "image_url": f"/tracks/{quote(name, safe='')}/plot.png" if facts["length"] else None,
+        "api_url": f"/api/tracks/{quote(name, safe='')}",
+    }
+    return _render(request, "track.html", context)
+
+
+@web_router.get("/tracks/{name}/plot.png")
+def track_plot(request: Request, settings: SettingsDep, name: str) -> Response:
+    """The track seen from above (PNG, drawn once and cached in the data folder)."""
+    path = track_image(name, Path(settings.data_dir))
+    return FileResponse(path, media_type="image/png", headers={"cache-control": "max-age=86400"})
+
+
+@web_router.get("/users/{name}", response_class=HTMLResponse)
+def user_page(request: Request, session: SessionDep, pages: PageDep, name: str) -> HTMLResponse:
+    """A user and their submissions."""
+    user = auth.get_user(session, name)
+    subs = queries.submissions(session, page=pages.page, per_page=pages.per_page, author=name)
+    context = {
+        "user": user,
+        "submissions": subs.items,
+        "api_url": f"/api/users/{quote(name, safe='')}",
+    }
+    return _render(request, "user.html", context | _pager(subs, f"/users/{quote(name, safe='')}"))

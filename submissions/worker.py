@@ -1,0 +1,186 @@
+"""The program that runs INSIDE the sandbox: load one submitted policy, serve reset/act.
+
+Started by :class:`submissions.sandbox.SandboxProcess` as ``python -m submissions.worker``.
+It reads the bundle's ``manifest.json``, loads the policy — the only place an uploaded policy
+is ever loaded —, says ``READY``, then answers frames of :mod:`submissions.protocol` until
+``CLOSE`` or the end of its input:
+
+===============  =====================================================================
+format           loaded with
+===============  =====================================================================
+``slipstream``   :func:`agents.loading.load_policy` (data only)
+``sb3``          ``load_policy(..., trusted=True)``: unpickles, which is why it is here
+``torchscript``  ``load_policy(..., trusted=True)``: a program, likewise
+``python``       the entry file imported as a module; ``class_name`` instantiated with
+                 ``env_spec=`` (a dict, see :func:`submissions.remote.make_env_spec`) when
+                 its ``__init__`` takes that keyword, else with no arguments
+===============  =====================================================================
+
+In seccomp mode (no namespaces) it first confines itself, before reading a byte of the
+bundle: parent-death signal, Landlock (read-only paths, one writable temp folder, no TCP,
+signals scoped to the sandbox) and the seccomp filter handed over by the host.
+
+The policy's prints go to stdout/stderr, which the host drains and caps; protocol frames go
+over two dedicated pipes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import ctypes
+import importlib.util
+import inspect
+import json
+import os
+import signal
+import sys
+import traceback
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from submissions.protocol import (
+    MAX_TEXT,
+    FrameDecoder,
+    Kind,
+    ProtocolError,
+    encode,
+    encode_json,
+    encode_text,
+    read_frame,
+    write_all,
+)
+from submissions.sandbox import apply_seccomp, landlock_restrict
+
+
+def _args(argv: list[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog="submissions.worker", description=__doc__)
+    parser.add_argument("--in", dest="fd_in", type=int, required=True)
+    parser.add_argument("--out", dest="fd_out", type=int, required=True)
+    parser.add_argument("--root", type=Path, required=True, help="the extracted bundle")
+    parser.add_argument("--spec", default="{}", help="the env spec, JSON")
+    parser.add_argument("--mode", choices=("bwrap", "seccomp"), required=True)
+    parser.add_argument("--sandbox-id", default="")
+    parser.add_argument("--seccomp-fd", type=int, default=-1)
+    parser.add_argument("--read", action="append", default=[])
+    parser.add_argument("--write", action="append", default=[])
+    return parser.parse_args(argv)
+
+
+def confine(args: argparse.Namespace) -> int:
+    """Seccomp mode: confine this process before anything of the bundle is read.
+
+    Returns:
+        The Landlock ABI applied (0: none; always 0 in bwrap mode, which needs none).
+    """
+    if args.mode != "seccomp":
+        return 0
+    ctypes.CDLL(None).prctl(1, int(signal.SIGKILL), 0, 0, 0)  # PR_SET_PDEATHSIG
+    if os.getppid() == 1:  # the host died before the line above
+        sys.exit(1)
+    with os.fdopen(args.seccomp_fd, "rb") as fh:
+        program = fh.read()
+    read = [*args.read, f"/proc/{os.getpid()}"]
+    abi = landlock_restrict(read, args.write)
+    apply_seccomp(program)
+    return abi
+
+
+def load(root: Path, spec: dict[str, Any]) -> tuple[Any, dict[str, Any]]:
+    """Load the bundle's policy; returns ``(policy, manifest)``."""
+    manifest = json.loads((root / "manifest.json").read_text(encoding="utf-8"))
+    fmt = manifest.get("format")
+    entry = (root / str(manifest.get("entry", ""))).resolve()
+    if not entry.is_relative_to(root.resolve()):
+        raise ValueError(f"entry {manifest.get('entry')!r} is outside the bundle")
+    if fmt == "python":
+        return _load_python(
+            root, entry, str(manifest.get("class_name") or "Policy"), spec
+        ), manifest
+    if fmt not in ("slipstream", "sb3", "torchscript"):
+        raise ValueError(f"unknown policy format {fmt!r}")
+    from agents.loading import load_policy  # noqa: PLC0415 - only the formats that need it
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # UntrustedCodeWarning: trusted=True is why we are here
+        return load_policy(entry, trusted=fmt != "slipstream"), manifest
+
+
+def _load_python(root: Path, entry: Path, class_name: str, spec: dict[str, Any]) -> Any:
+    sys.path.insert(0, str(root))  # the bundle may hold helper modules next to its entry
+    module_spec = importlib.util.spec_from_file_location("submission_policy", entry)
+    if module_spec is None or module_spec.loader is None:
+        raise ImportError(f"cannot import {entry.name}")
+    module = importlib.util.module_from_spec(module_spec)
+    sys.modules["submission_policy"] = module
+    module_spec.loader.exec_module(module)
+    cls = getattr(module, class_name, None)
+    if cls is None:
+        raise AttributeError(f"{entry.name} defines no {class_name!r}")
+    try:
+        takes_spec = "env_spec" in inspect.signature(cls).parameters
+    except (TypeError, ValueError):
+        takes_spec = False
+    return cls(env_spec=spec) if takes_spec else cls()
+
+
+def _describe(err: BaseException) -> str:
+    return f"{type(err).__name__}: {err}"[:MAX_TEXT]
+
+
+def serve(policy: Any, fd_in: int, fd_out: int) -> None:
+    """Answer RESET / ACT frames until CLOSE or end of input."""
+    decoder = FrameDecoder()
+    while (frame := read_frame(fd_in, decoder)) is not None:
+        if frame.kind == Kind.CLOSE:
+            return
+        try:
+            if frame.kind == Kind.RESET:
+                seed = int(frame.array[0]) if frame.array.size else None
+                reset = getattr(policy, "reset", None)
+                if reset is not None:
+                    reset(seed)
+                reply = encode(Kind.OK)
+            elif frame.kind == Kind.ACT:
+                reply = _action_frame(policy.act(frame.array))
+            else:
+                raise ProtocolError(f"unexpected {frame.kind.name} frame")
+        except Exception as err:  # the policy's bug: report it, the host decides
+            traceback.print_exc()
+            reply = encode_text(Kind.ERROR, _describe(err))
+        write_all(fd_out, reply)
+
+
+def _action_frame(action: Any) -> bytes:
+    try:
+        arr = np.asarray(action)
+        if arr.dtype.kind not in "fiu":
+            raise ProtocolError(f"action of type {type(action).__name__} / dtype {arr.dtype}")
+        return encode(Kind.ACTION, arr)
+    except (ProtocolError, TypeError, ValueError, OverflowError) as err:
+        return encode_text(Kind.INVALID, f"not a numeric action: {err}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point; the exit status is 0 after CLOSE, 1 when the policy failed to load."""
+    args = _args(argv)
+    landlock = confine(args)
+    spec = json.loads(args.spec)
+    try:
+        policy, manifest = load(args.root, spec)
+    except BaseException as err:  # a load may raise anything, SystemExit included
+        traceback.print_exc()
+        write_all(args.fd_out, encode_text(Kind.ERROR, f"loading failed: {_describe(err)}"))
+        return 1
+    hello = {"name": str(manifest.get("name", "")), "format": manifest.get("format")}
+    write_all(args.fd_out, encode_json(Kind.READY, hello | {"landlock": landlock}))
+    with contextlib.suppress(BrokenPipeError):
+        serve(policy, args.fd_in, args.fd_out)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,227 @@
+"""Robustness evaluation, the nature's self-play view, RARL training, ``slipstream robustness``."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from agents.baselines import make_baseline
+from agents.robustness import (
+    GRID,
+    evaluate_robustness,
+    grid_points,
+    run_episode,
+    save_plot,
+    summarise,
+    tail_mean,
+)
+from agents.selfplay import SelfPlayVecEnv
+from arena import RacingEnv
+from arena.observations import ObservationLayout
+from arena.uncertainty import UncertaintyConfig, default_config
+from leaderboard.cli import main as cli_main
+
+SMALL_GRID = {"friction": (0.6, 1.0), "motor": (1.0,), "steer_offset": (0.0,), "latency": (0, 2)}
+
+
+def pursuit() -> object:
+    return make_baseline("pursuit", ObservationLayout(64, 3))
+
+
+def test_grid_points() -> None:
+    full = grid_points()
+    assert len(full) == 4 * 3 * 3 * 3
+    assert {tuple(p) for p in full} == {tuple(GRID)}
+    assert grid_points(0.0) == [
+        {"friction": 1.0, "motor": 1.0, "steer_offset": 0.0, "latency": 0.0}
+    ]
+    half = grid_points(0.5)
+    assert {p["friction"] for p in half} == {0.8, 0.9, 1.0, 1.1}
+    assert {p["latency"] for p in half} == {0.0, 1.0}
+
+
+def test_summary_statistics() -> None:
+    scores = [float(x) for x in range(1, 21)]  # 1 … 20
+    assert tail_mean(scores) == pytest.approx(1.5)  # worst 10 %: 1 and 2
+    assert tail_mean([3.0, 1.0]) == 1.0
+    s = summarise(scores, nominal=10.0)
+    assert s["worst"] == 1.0 and s["mean"] == pytest.approx(10.5)
+    assert s["worst_over_nominal"] == pytest.approx(0.1)
+
+
+def test_harder_perturbations_score_lower() -> None:
+    env = RacingEnv(track="oval", n_cars=1, uncertainty=UncertaintyConfig("fixed"))
+    policy = pursuit()
+    nominal = run_episode(env, policy, seed=0, perturbation={})
+    slow = run_episode(env, policy, seed=0, perturbation={"motor": 0.6})
+    again = run_episode(env, policy, seed=0, perturbation={})
+    env.close()
+    assert nominal.finished and nominal.score > 3.0
+    assert nominal.score == again.score  # deterministic
+    assert slow.score < nominal.score
+    assert slow.perturbation["motor"] == 0.6
+
+
+def test_a_mid_lap_start_races_one_race_distance_from_where_it_stands() -> None:
+    env = RacingEnv(track="oval", n_cars=1, uncertainty=UncertaintyConfig("fixed"))
+    policy = pursuit()
+    grid = run_episode(env, policy, seed=0, perturbation={})
+    half = run_episode(env, policy, seed=0, perturbation={}, start=0.5)
+    assert not env.finished[0]  # stopped a race distance on, not at the env's finish line
+    env.close()
+    assert half.finished and half.distance == pytest.approx(env.race_distance, abs=0.5)
+    assert half.time < env.max_cycles * env.dt
+    assert half.score == pytest.approx(grid.score, rel=0.25)  # the same lap, elsewhere
+
+
+@pytest.mark.slow
+def test_evaluate_robustness_report_and_plot(tmp_path: Path) -> None:
+    report = evaluate_robustness(
+        pursuit(),  # type: ignore[arg-type]
+        "oval",
+        n_random=2,
+        nature_steps=256,
+        scales=(0.0, 1.0),
+        grid=SMALL_GRID,
+        starts=(0.0, 0.5),
+    )
+    assert report.grid["n"] == 4 and report.starts == [0.0, 0.5]
+    for point in report.grid_races:  # a point scores the mean over the starts
+        assert len(point["races"]) == 2
+        assert point["score"] == pytest.approx(np.mean([r["score"] for r in point["races"]]))
+    assert report.grid["worst"] <= report.grid["worst10_mean"] <= report.grid["mean"]
+    assert report.grid["worst"] <= report.nominal
+    assert report.random is not None and report.random["n"] == 2
+    assert report.nature is not None and report.nature["score"] > 0.0
+    assert [row["scale"] for row in report.degradation] == [0.0, 1.0]
+    assert report.degradation[0]["worst"] == report.nominal
+    png = save_plot(report, tmp_path / "curve.png")
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    json.dumps(report.to_dict())  # JSON-able
+
+
+def test_nature_view_rewards_are_minus_the_cars() -> None:
+    cfg = default_config("adversarial")
+    racer, nature = (
+        SelfPlayVecEnv(
+            ["oval"],
+            n_envs=1,
+            n_cars=2,
+            n_learners=1,
+            seed=0,
+            env_kwargs={"uncertainty": cfg},
+            reward_scale=2.0,
+            role=role,
+        )
+        for role in ("racer", "nature")
+    )
+    assert nature.learners == ["nature_car_0"]
+    assert nature.observation_space.shape == (2 * (10 + len(cfg.free)) + 2,)
+    assert nature.action_space.shape == (len(cfg.free),)
+
+    class Constant:
+        def __init__(self, action: list[float]) -> None:
+            self.name = "constant"
+            self.action = np.array(action, np.float32)
+
+        def act_batch(self, obs: np.ndarray) -> np.ndarray:
+            return np.tile(self.action, (len(obs), 1))
+
+    nature.racer = Constant([0.0, 0.6])
+    racer.nature = Constant([0.0] * len(cfg.free))
+    for vec in (racer, nature):
+        vec.reset()
+    car_rewards, nature_rewards = [], []
+    for _ in range(40):
+        _, r_car, _, _ = racer.step(np.array([[0.0, 0.6]], np.float32))
+        _, r_nat, _, _ = nature.step(np.zeros((1, len(cfg.free)), np.float32))
+        car_rewards.append(float(r_car[0]))
+        nature_rewards.append(float(r_nat[0]))
+    # The nature slot sees minus the (scaled) reward of the car it perturbs: the car drives.
+    assert sum(nature_rewards) < -1.0
+    assert sum(car_rewards) > 1.0
+    racer.close()
+    nature.close()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", ["sample", "adversarial"])
+def test_train_with_uncertainty(tmp_path: Path, mode: str) -> None:
+    from agents.train import TrainArgs, main
+
+    args = TrainArgs(
+        tracks=["oval"],
+        n_cars=2,
+        n_learners=1,
+        n_envs=2,
+        total_timesteps=512,
+        n_steps=64,
+        batch_size=64,
+        n_epochs=1,
+        eval_every=0,
+        uncertainty=mode,
+        nature_every=256,
+        nature_steps=128,
+        init_from=Path("agents/data/ppo_racer.zip"),
+        out=tmp_path,
+        run_name=mode,
+        progress_bar=False,
+    )
+    summary = main(args)
+    assert summary["training"]["steps"] >= 512
+    assert (tmp_path / mode / "policy.zip").is_file()
+    assert (tmp_path / mode / "nature_sb3.zip").is_file() == (mode == "adversarial")
+
+
+def test_train_rejects_an_unknown_uncertainty_mode(capsys: pytest.CaptureFixture[str]) -> None:
+    assert cli_main(["train", "--uncertainty", "robust", "--total-timesteps", "1"]) == 2
+    assert "uncertainty" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_cli_robustness(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "out"
+    code = cli_main(
+        [
+            "robustness",
+            "pursuit",
+            "--track",
+            "oval",
+            "--random",
+            "1",
+            "--nature-steps",
+            "0",
+            "--friction",
+            "0.6",
+            "1.0",
+            "--motor",
+            "1.0",
+            "--steer-offset",
+            "0.0",
+            "--latency",
+            "0",
+            "1",
+            "--scales",
+            "1",
+            "--out",
+            str(out),
+            "--json",
+            "-",
+        ]
+    )
+    assert code == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["grid"]["n"] == 4 and report["nature"] is None
+    assert (out / "pursuit_oval.png").is_file() and (out / "pursuit_oval.json").is_file()
+
+
+def test_cli_robustness_user_errors(capsys: pytest.CaptureFixture[str]) -> None:
+    assert cli_main(["robustness", "pursuit", "--track", "nowhere"]) == 2
+    assert cli_main(["robustness", "no/such/policy.zip", "--track", "oval"]) == 2
+    assert cli_main(["robustness", "pursuit", "--laps", "0"]) == 2
+    assert cli_main(["robustness", "pursuit", "--starts", "0", "1.5"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("slipstream: error:") == 4

@@ -1,0 +1,172 @@
+"""Workers: results stored through the queue, real races through run_race_job, and a worker
+killed mid-race whose race runs again with its rating applied exactly once."""
+
+from __future__ import annotations
+
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+
+import pytest
+from fastapi.testclient import TestClient
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session
+
+from leaderboard import matchmaking
+from leaderboard.models import Job, Race, RatingHistory, Submission, SubmissionVersion
+from leaderboard.settings import Settings
+from leaderboard.worker import Worker
+from submissions.jobs import JobResult, RaceJob
+from tests.leaderboard import factories
+from tests.leaderboard.conftest import Account
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _fake_runner(db_settings: Settings, fail: set[str] | None = None):  # type: ignore[no-untyped-def]
+    """A runner that answers each job with a made-up result (car 0 wins) without racing."""
+    from leaderboard.db import make_engine, make_sessionmaker
+
+    sessions = make_sessionmaker(make_engine(db_settings.db_url))
+
+    def run(jobs: Sequence[RaceJob]) -> Iterator[JobResult]:
+        for job in jobs:
+            if fail and job.job_id in fail:
+                yield JobResult.failed(job, "boom", attempts=1, duration_s=0.0)
+                continue
+            with sessions() as s:
+                race = s.get(Race, int(job.job_id))
+                assert race is not None
+                result = factories.fake_result(race)
+            yield JobResult(job.job_id, result, "", None, "none", 0.1)
+
+    return run
+
+
+def test_worker_stores_results_and_schedules_more(db: Session, settings: Settings) -> None:
+    factories.seed(db, settings, n_submissions=3, n_races=0)
+    worker = Worker(settings, workers=2, runner=_fake_runner(settings))
+    try:
+        stats = worker.run(max_races=6)
+    finally:
+        worker.close()
+    assert (stats.completed, stats.failed, stats.discarded) == (6, 0, 0)
+    assert db.scalar(select(func.count(Race.id)).where(Race.status == "finished")) == 3 + 6
+    assert db.scalar(select(func.sum(Submission.races))) == db.scalar(
+        select(func.count(RatingHistory.id))
+    )
+
+
+def test_a_job_that_errors_is_retried_then_failed(db: Session, settings: Settings) -> None:
+    factories.seed(db, settings, n_submissions=2, n_races=0)
+    (race,) = matchmaking.schedule_ranked(db, settings, 1, random.Random(0))
+    db.commit()
+    worker = Worker(settings, runner=_fake_runner(settings, fail={str(race.id)}), schedule=False)
+    try:
+        for _ in range(settings.max_attempts):
+            worker.run(once=True)
+    finally:
+        worker.close()
+    db.expire_all()
+    failed = db.get(Race, race.id)
+    assert failed is not None and failed.status == "failed" and failed.error == "boom"
+    assert db.scalar(select(Job.attempts).where(Job.race_id == race.id)) == settings.max_attempts
+
+
+@pytest.mark.slow
+def test_worker_runs_real_races_end_to_end(
+    client: TestClient, db: Session, settings: Settings, alice: Account, bundle_zip
+) -> None:
+    """Upload → sandboxed validation race → ranked races → ratings, replays on disk."""
+    settings = settings.model_copy(update={"race_laps": 1, "tracks": ["oval"]})
+    factories.seed(db, settings, n_submissions=2, n_races=0)  # pursuit-0, gap-1 (validated)
+    with bundle_zip("uploaded").open("rb") as f:
+        r = client.post("/api/submissions", headers=alice.headers, files={"file": ("u.zip", f)})
+    assert r.status_code == 201
+    upload = r.json()
+    worker = Worker(settings, workers=2)
+    try:
+        stats = worker.run(max_races=3)
+    finally:
+        worker.close()
+    assert stats.completed == 3 and stats.failed == 0
+    db.expire_all()
+    validation = db.get(Race, upload["validation_race_id"])
+    assert validation is not None and validation.status == "finished"
+    assert validation.sandbox in ("bwrap", "seccomp")  # the upload ran sandboxed
+    version = db.scalar(
+        select(SubmissionVersion).where(SubmissionVersion.submission_id == upload["submission_id"])
+    )
+    assert version is not None and version.status == "validated", version.error if version else ""
+    ranked = db.scalars(select(Race).where(Race.kind == "ranked", Race.status == "finished")).all()
+    assert len(ranked) == 2
+    for race in ranked:
+        assert race.result is not None and race.result["track"] == "oval"
+        assert Path(race.replay_path or "").is_file() and Path(race.viser_path or "").is_file()
+        assert Path(race.viser_path or "").parent == settings.replays_dir.resolve()
+        assert all(e.mu_after is not None for e in race.entries)
+    page = client.get(f"/api/races/{ranked[0].id}").json()
+    assert client.get(page["viser_url"]).status_code == 200
+
+
+def _wait_for(predicate, timeout: float, what: str) -> None:  # type: ignore[no-untyped-def]
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return
+        time.sleep(0.2)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+@pytest.mark.slow
+def test_killed_worker_race_runs_again_and_rating_is_applied_once(
+    db: Session, settings: Settings
+) -> None:
+    # Three laps (≈15 s of racing) so the kill surely lands while the race runs.
+    settings = settings.model_copy(update={"lease_s": 3.0, "race_laps": 3})
+    factories.seed(db, settings, n_submissions=2, n_races=0)
+    (race,) = matchmaking.schedule_ranked(db, settings, 1, random.Random(0))
+    db.commit()
+    cmd = [
+        sys.executable, "-m", "leaderboard.cli", "worker", "--db", settings.db_url,
+        "--data-dir", str(settings.data_dir), "--once", "--no-schedule", "--lease-s", "3",
+    ]  # fmt: skip
+    proc = subprocess.Popen(
+        cmd, cwd=REPO, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
+    )
+    try:
+
+        def leased() -> bool:
+            db.expire_all()
+            return db.scalar(select(Job.status).where(Job.race_id == race.id)) == "leased"
+
+        _wait_for(leased, 60, "the subprocess worker to claim the race")
+        time.sleep(1.5)  # the race is under way in the worker's job process
+        assert proc.poll() is None, proc.stderr.read() if proc.stderr else ""
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL)  # the worker, its fork server and its job process
+        proc.wait(timeout=30)
+    db.expire_all()
+    job = db.scalar(select(Job).where(Job.race_id == race.id))
+    assert job is not None and (job.status, job.attempts) == ("leased", 1)
+    assert db.scalar(select(func.count(RatingHistory.id))) == 0
+
+    worker = Worker(settings, schedule=False)  # claims it once the dead worker's lease expires
+    try:
+        stats = worker.run(max_races=1, poll_s=0.5)
+    finally:
+        worker.close()
+    assert stats.completed == 1
+    db.expire_all()
+    job = db.scalar(select(Job).where(Job.race_id == race.id))
+    assert job is not None and (job.status, job.attempts) == ("done", 2)
+    finished = db.get(Race, race.id)
+    assert finished is not None and finished.status == "finished"
+    n_cars = len(finished.entries)
+    assert db.scalar(select(func.count(RatingHistory.id))) == n_cars
+    assert db.scalar(select(func.sum(Submission.races))) == n_cars

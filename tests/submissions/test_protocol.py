@@ -1,0 +1,138 @@
+"""The worker protocol: raw-array frames round-trip; malformed streams are refused early."""
+
+from __future__ import annotations
+
+import os
+import struct
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+
+from submissions.protocol import (
+    HEADER,
+    MAX_FRAME,
+    MAX_TEXT,
+    FrameDecoder,
+    Kind,
+    ProtocolError,
+    encode,
+    encode_json,
+    encode_text,
+    read_frame,
+    write_all,
+)
+
+DTYPES = [np.float32, np.float64, np.int32, np.int64, np.uint8, np.bool_]
+
+
+@given(
+    arr=hnp.arrays(
+        dtype=st.sampled_from(DTYPES),
+        shape=hnp.array_shapes(min_dims=0, max_dims=4, min_side=0, max_side=5),
+    ),
+    kind=st.sampled_from(list(Kind)),
+)
+def test_arrays_round_trip_exactly(arr: np.ndarray, kind: Kind) -> None:
+    (frame,) = FrameDecoder().feed(encode(kind, arr))
+    assert frame.kind == kind
+    assert frame.array.dtype == arr.dtype and frame.array.shape == arr.shape
+    np.testing.assert_array_equal(frame.array, arr)
+
+
+def test_frames_split_anywhere_decode_the_same() -> None:
+    data = encode(Kind.ACT, np.arange(7, dtype=np.float32)) + encode(Kind.OK)
+    decoder = FrameDecoder()
+    frames = [f for i in range(len(data)) for f in decoder.feed(data[i : i + 1])]
+    assert [f.kind for f in frames] == [Kind.ACT, Kind.OK]
+    np.testing.assert_array_equal(frames[0].array, np.arange(7, dtype=np.float32))
+    assert decoder.pending == 0
+
+
+def test_other_numeric_dtypes_are_widened_and_text_travels_as_utf8() -> None:
+    (frame,) = FrameDecoder().feed(encode(Kind.ACTION, np.array([1, 2], dtype=np.int16)))
+    assert frame.array.dtype == np.int32
+    (frame,) = FrameDecoder().feed(encode_text(Kind.ERROR, "crash: ünïcode"))
+    assert frame.text == "crash: ünïcode"
+    (frame,) = FrameDecoder().feed(encode_json(Kind.READY, {"name": "x"}))
+    assert frame.text == '{"name": "x"}'
+    (frame,) = FrameDecoder().feed(encode_text(Kind.ERROR, "x" * (MAX_TEXT * 3)))
+    assert len(frame.text) == MAX_TEXT
+
+
+@pytest.mark.parametrize(
+    "value",
+    [np.array(["left"]), np.array([object()]), np.array([1 + 2j]), np.zeros((1,) * 9)],
+    ids=["text", "object", "complex", "9-dims"],
+)
+def test_encode_refuses_what_is_not_a_plain_array(value: np.ndarray) -> None:
+    with pytest.raises(ProtocolError):
+        encode(Kind.ACTION, value)
+
+
+def _header(
+    magic: bytes = b"SL", kind: int = 5, code: int = 1, ndim: int = 1, nbytes: int = 8
+) -> bytes:
+    return HEADER.pack(magic, kind, code, ndim, nbytes)
+
+
+@pytest.mark.parametrize(
+    ("data", "message"),
+    [
+        (_header(magic=b"PK"), "magic"),
+        (_header(kind=99), "kind"),
+        (_header(code=42), "dtype"),
+        (_header(ndim=9), "axes"),
+        (_header(nbytes=MAX_FRAME + 1), "exceeds"),
+        (_header(nbytes=1 << 40), "exceeds"),
+        (_header(nbytes=12) + struct.pack("<Q", 2), "does not match"),
+    ],
+    ids=["magic", "kind", "dtype", "ndim", "oversize", "huge", "shape-mismatch"],
+)
+def test_bad_headers_are_refused_before_any_payload(data: bytes, message: str) -> None:
+    with pytest.raises(ProtocolError, match=message):
+        FrameDecoder().feed(data)
+
+
+def test_a_smaller_cap_is_enforced() -> None:
+    with pytest.raises(ProtocolError, match="exceeds"):
+        FrameDecoder(max_frame=16).feed(encode(Kind.ACT, np.zeros(5, np.float32)))
+
+
+def test_read_frame_over_a_pipe_and_end_of_stream() -> None:
+    r, w = os.pipe()
+    try:
+        write_all(w, encode(Kind.RESET, np.array([7], np.int64)))
+        frame = read_frame(r, FrameDecoder())
+        assert frame is not None and frame.kind == Kind.RESET and int(frame.array[0]) == 7
+        write_all(w, encode(Kind.ACT, np.zeros(4, np.float32))[:10])  # cut inside the header
+        os.close(w)
+        w = -1
+        with pytest.raises(ProtocolError, match="inside a frame"):
+            read_frame(r, FrameDecoder())
+    finally:
+        os.close(r)
+        if w >= 0:
+            os.close(w)
+
+
+def test_read_frame_returns_none_at_a_clean_end() -> None:
+    r, w = os.pipe()
+    os.close(w)
+    try:
+        assert read_frame(r, FrameDecoder()) is None
+    finally:
+        os.close(r)
+
+
+def test_pipelined_requests_are_refused() -> None:
+    r, w = os.pipe()
+    try:
+        write_all(w, encode(Kind.OK) + encode(Kind.OK))
+        with pytest.raises(ProtocolError, match="more than one"):
+            read_frame(r, FrameDecoder())
+    finally:
+        os.close(r)
+        os.close(w)

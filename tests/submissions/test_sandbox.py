@@ -1,0 +1,352 @@
+"""The sandbox from the inside (a probe policy reports what it sees), its limits, deadlines,
+clean-up, and how the race drives sandboxed and two-phase policies."""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+import pytest
+
+from agents.baselines import make_baseline
+from agents.loading import DEFAULT_LAYOUT
+from arena.env import RacingEnv
+from arena.race import action_problem, run_race
+from submissions import sandbox
+from submissions.errors import SandboxError
+from submissions.remote import (
+    PolicyCrash,
+    PolicyTimeout,
+    SandboxedPolicy,
+    action_space_of,
+    env_spec_of,
+    make_env_spec,
+)
+from submissions.sandbox import CGROUP_ROOT, SandboxLimits, sandbox_mode
+
+from .conftest import FAST, MakeBundle, sandbox_processes
+
+PROBE = """
+import json, os, resource, socket, sys
+
+def _try(fn):
+    try:
+        return fn()
+    except OSError as err:
+        return "OSError:" + (err.strerror or type(err).__name__)
+
+def _write(path, mb):
+    with open(path, "wb") as fh:
+        fh.write(b"x" * (mb << 20))
+    os.remove(path)
+    return "ok"
+
+class Policy:
+    def __init__(self, env_spec):
+        lines = open("/proc/self/status").read().splitlines()
+        status = dict(line.split(":\\t", 1) for line in lines if ":\\t" in line)
+        facts = {
+            "uid": os.getuid(),
+            "env": sorted(os.environ),
+            "pids": _try(lambda: sorted(int(p) for p in os.listdir("/proc") if p.isdigit())),
+            "seccomp": status.get("Seccomp", "").strip(),
+            "no_new_privs": status.get("NoNewPrivs", "").strip(),
+            "cap_eff": status.get("CapEff", "").strip(),
+            "nofile": resource.getrlimit(resource.RLIMIT_NOFILE)[0],
+            "as_mb": resource.getrlimit(resource.RLIMIT_AS)[0] >> 20,
+            "fsize_mb": resource.getrlimit(resource.RLIMIT_FSIZE)[0] >> 20,
+            "cpu": resource.getrlimit(resource.RLIMIT_CPU)[0],
+            "socket_inet": _try(lambda: socket.socket(socket.AF_INET).close() or "ok"),
+            "socket_unix": _try(lambda: socket.socket(socket.AF_UNIX).close() or "ok"),
+            "tmp_small": _try(lambda: _write(os.path.join(os.environ["TMPDIR"], "a"), 1)),
+            "tmp_too_big": _try(lambda: _write(os.path.join(os.environ["TMPDIR"], "b"), 3)),
+            "spec": env_spec,
+        }
+        print("PROBE " + json.dumps(facts), flush=True)
+
+    def act(self, obs):
+        return [0.0, 0.5]
+"""
+
+
+def probe(
+    make_python_bundle: MakeBundle, limits: SandboxLimits
+) -> tuple[SandboxedPolicy, dict[str, Any]]:
+    policy = SandboxedPolicy(make_python_bundle(PROBE, name="probe", driver=False), limits)
+    policy.reset(0)
+    line = next(x for x in policy.output.splitlines() if x.startswith("PROBE "))
+    return policy, json.loads(line[len("PROBE ") :])
+
+
+def test_the_probe_sees_a_confined_world(mode: str, make_python_bundle: MakeBundle) -> None:
+    limits = replace(FAST, open_files=64, file_size_mb=2, memory_mb=1536, cpu_seconds=77)
+    policy, facts = probe(make_python_bundle, limits)
+    try:
+        assert policy.mode == mode
+        assert facts["seccomp"] == "2" and facts["no_new_privs"] == "1"
+        assert facts["socket_inet"].startswith("OSError") and facts["socket_unix"] == "ok"
+        assert (facts["nofile"], facts["as_mb"], facts["fsize_mb"], facts["cpu"]) == (
+            64,
+            1536,
+            2,
+            77,
+        )
+        assert facts["tmp_small"] == "ok"
+        assert facts["tmp_too_big"].startswith("OSError")  # RLIMIT_FSIZE
+        assert set(facts["env"]) <= {
+            "PATH", "HOME", "TMPDIR", "PYTHONPATH", "PYTHONNOUSERSITE", "PYTHONDONTWRITEBYTECODE",
+            "LANG", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "LC_CTYPE", "PWD",
+        }  # fmt: skip
+        assert facts["spec"] == make_env_spec()
+        if mode == "bwrap":
+            assert facts["uid"] == 65534
+            assert facts["cap_eff"] == "0000000000000000"
+            assert len(facts["pids"]) <= 3  # bwrap's init, the worker (and nothing of the host)
+        else:
+            assert str(facts["pids"]).startswith("OSError")  # Landlock hides /proc
+        assert policy.sandbox_id is not None
+        assert sandbox_processes(policy.sandbox_id)
+    finally:
+        policy.close()
+    assert sandbox_processes(policy.sandbox_id) == []
+    assert not list((CGROUP_ROOT / "pids" / "slipstream").glob(f"{policy.sandbox_id}*"))
+
+
+def test_the_private_tmpfs_is_size_capped(make_python_bundle: MakeBundle) -> None:
+    if sandbox_mode() != "bwrap":
+        pytest.skip("the size-capped tmpfs is bwrap's")
+    body = PROBE.replace('"tmp_small"', '"tmp_fill"').replace(
+        '_write(os.path.join(os.environ["TMPDIR"], "a"), 1)', '_write("/tmp/fill", 8)'
+    )
+    policy = SandboxedPolicy(make_python_bundle(body, driver=False), replace(FAST, tmpfs_mb=4))
+    try:
+        policy.reset(0)
+        facts = json.loads(
+            next(x for x in policy.output.splitlines() if x.startswith("PROBE "))[6:]
+        )
+    finally:
+        policy.close()
+    assert facts["tmp_fill"].startswith("OSError")  # ENOSPC (or EFBIG): 8 MiB in a 4 MiB tmpfs
+
+
+def test_limits_are_checked() -> None:
+    with pytest.raises(SandboxError, match="1024"):
+        SandboxLimits(memory_mb=512)
+    with pytest.raises(SandboxError, match="step_deadline_s"):
+        SandboxLimits(step_deadline_s=0)
+    with pytest.raises(SandboxError, match="overage_s"):
+        SandboxLimits(overage_s=-1)
+
+
+def test_sandbox_mode_honours_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("SANDBOX", "seccomp")
+    assert sandbox_mode() == "seccomp"
+    monkeypatch.setenv("SANDBOX", "chroot")
+    with pytest.raises(SandboxError, match="SANDBOX"):
+        sandbox_mode()
+
+
+def test_without_namespaces_the_fallback_is_loud(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    monkeypatch.delenv("SANDBOX", raising=False)
+    monkeypatch.setattr(sandbox, "bwrap_works", lambda: False)
+    sandbox._warn_fallback.cache_clear()
+    with caplog.at_level(logging.WARNING, logger="submissions.sandbox"):
+        assert sandbox_mode() == "seccomp"
+    assert "weaker seccomp fallback" in caplog.text
+    monkeypatch.setenv("SANDBOX", "bwrap")
+    with pytest.raises(SandboxError, match="cannot create namespaces"):
+        sandbox_mode()
+
+
+SLEEPER = """
+import time
+class Policy:
+    def __init__(self, env_spec):
+        self.nap = {nap}
+    def act(self, obs):
+        time.sleep(self.nap)
+        return [0.0, 0.0]
+"""
+
+
+def test_overage_bank_is_drawn_down_then_the_policy_times_out(
+    make_python_bundle: MakeBundle,
+) -> None:
+    # 0.2 s over a 0.1 s deadline per step, a 1 s bank: about five steps, then a timeout.
+    limits = replace(FAST, step_deadline_s=0.1, overage_s=1.0)
+    bundle = make_python_bundle(SLEEPER.format(nap=0.3), driver=False)
+    obs = np.zeros(make_env_spec()["obs_shape"], np.float32)
+    with SandboxedPolicy(bundle, limits) as policy:
+        policy.reset(0)
+        served = 0
+        with pytest.raises(PolicyTimeout, match="overage bank"):
+            for _ in range(20):
+                policy.act(obs)
+                served += 1
+        assert 2 <= served <= 6
+        assert policy.stats["failure"] == "timeout"
+        with pytest.raises(PolicyTimeout):  # and it stays failed
+            policy.send(obs)
+
+
+def test_cars_waiting_in_parallel_are_each_timed_from_their_own_send(
+    make_python_bundle: MakeBundle,
+) -> None:
+    # Each takes 0.2 s of a 0.35 s deadline, no bank: collected one after the other, the
+    # second would look 0.4 s late if its clock ran while the host waited for the first.
+    limits = replace(FAST, step_deadline_s=0.35, overage_s=0.0)
+    bundles = [
+        make_python_bundle(SLEEPER.format(nap=0.2), name=f"s{i}", driver=False) for i in range(2)
+    ]
+    obs = np.zeros(make_env_spec()["obs_shape"], np.float32)
+    policies = [SandboxedPolicy(b, limits) for b in bundles]
+    try:
+        for p in policies:
+            p.start()
+        for p in policies:
+            p.reset(0)
+        for _ in range(3):
+            for p in policies:
+                p.send(obs)
+            time.sleep(0.3)  # the host is busy elsewhere meanwhile
+            actions = [p.receive() for p in policies]
+            assert all(a.shape == (2,) for a in actions)
+    finally:
+        for p in policies:
+            p.close()
+
+
+def test_a_policy_that_fails_to_load_reports_why(make_python_bundle: MakeBundle) -> None:
+    bundle = make_python_bundle("raise ImportError('no such wheel')", driver=False)
+    with SandboxedPolicy(bundle, FAST) as policy, pytest.raises(PolicyCrash, match="no such wheel"):
+        policy.reset(0)
+
+
+def test_a_sandboxed_pursuit_finishes_like_the_in_process_one(
+    make_python_bundle: MakeBundle,
+) -> None:
+    bundle = make_python_bundle("class Policy(Driver):\n    pass\n", name="pursuit_in_box")
+    boxed = SandboxedPolicy(bundle, FAST)
+    result, replay = run_race(
+        [boxed, make_baseline("pursuit", DEFAULT_LAYOUT)], track="oval", seed=0, record=True
+    )
+    assert [c.status for c in result.cars] == ["finished", "finished"]
+    assert boxed.stats["steps"] > 100 and boxed.stats["failure"] is None
+    assert replay is not None and replay.cars[0]["name"] == "pursuit_in_box"
+    assert boxed.sandbox_id is not None and sandbox_processes(boxed.sandbox_id) == []  # closed
+
+
+# ---- the race's side, with in-process stand-ins --------------------------------------------
+
+
+class Failing:
+    """Raises an exception carrying ``dnf_reason`` on its third action."""
+
+    def __init__(self, reason: str) -> None:
+        self.name = f"fails-{reason}"
+        self.reason = reason
+        self.steps = 0
+        self.inner = make_baseline("pursuit", DEFAULT_LAYOUT)
+
+    def reset(self, seed: int | None = None) -> None:
+        self.inner.reset(seed)
+
+    def act(self, obs: Any) -> Any:
+        self.steps += 1
+        if self.steps == 3:
+            err = RuntimeError("nope")
+            err.dnf_reason = self.reason  # type: ignore[attr-defined]
+            raise err
+        return self.inner.act(obs)
+
+
+class TwoPhase:
+    """Records the order of calls; acts like pursuit."""
+
+    def __init__(self, log: list[str], name: str) -> None:
+        self.name = name
+        self.log = log
+        self.inner = make_baseline("pursuit", DEFAULT_LAYOUT)
+        self.pending: Any = None
+        self.closed = False
+
+    def start(self) -> None:
+        self.log.append(f"start {self.name}")
+
+    def reset(self, seed: int | None = None) -> None:
+        self.inner.reset(seed)
+
+    def act(self, obs: Any) -> Any:
+        raise AssertionError("a two-phase policy is driven with send/receive")
+
+    def send(self, obs: Any) -> None:
+        self.log.append(f"send {self.name}")
+        self.pending = self.inner.act(obs)
+
+    def receive(self) -> Any:
+        self.log.append(f"receive {self.name}")
+        return self.pending
+
+    def close(self) -> None:
+        self.closed = True
+
+
+@pytest.mark.parametrize("reason", ["timeout", "invalid", "error"])
+def test_the_race_takes_the_dnf_reason_from_the_exception(reason: str) -> None:
+    result, _ = run_race(
+        [Failing(reason), make_baseline("pursuit", DEFAULT_LAYOUT)], seed=0, record=False
+    )
+    assert (result.cars[0].status, result.cars[0].dnf_reason) == ("dnf", reason)
+    assert result.cars[1].status == "finished"
+
+
+def test_two_phase_policies_are_sent_first_collected_last_and_closed() -> None:
+    log: list[str] = []
+    a, b = TwoPhase(log, "a"), TwoPhase(log, "b")
+    result, _ = run_race([a, make_baseline("pursuit", DEFAULT_LAYOUT), b], seed=0, record=False)
+    assert all(c.status == "finished" for c in result.cars)
+    assert log[:2] == ["start a", "start b"]
+    assert log[2:6] == ["send a", "send b", "receive a", "receive b"]
+    assert a.closed and b.closed
+
+
+def test_action_problem_names_each_fault() -> None:
+    box = action_space_of(make_env_spec())
+    assert action_problem(np.array([0.5, -1.0], np.float32), box) is None
+    assert "shape" in str(action_problem(np.zeros(3), box))
+    assert "outside" in str(action_problem(np.array([1.5, 0.0]), box))
+    assert "NaN" in str(action_problem(np.array([np.nan, 0.0]), box))
+    assert "not a number" in str(action_problem("left", box))
+    discrete = action_space_of(make_env_spec(action_mode="discrete"))
+    assert action_problem(3, discrete) is None
+    assert action_problem(2.5, discrete) is not None and action_problem(99, discrete) is not None
+
+
+def test_make_env_spec_matches_a_real_env() -> None:
+    for mode in ("continuous", "discrete"):
+        env = RacingEnv(track="oval", n_cars=2, action_mode=mode)
+        try:
+            assert env_spec_of(env) == make_env_spec(action_mode=mode)
+        finally:
+            env.close()
+
+
+def test_bundle_root_is_read_only_inside(make_python_bundle: MakeBundle) -> None:
+    body = """
+    class Policy(Driver):
+        def attack(self, obs):
+            here = os.path.dirname(os.path.abspath(__file__))
+            with open(os.path.join(here, "agent.py"), "a") as fh:
+                fh.write("# tampered")
+    """
+    bundle = make_python_bundle(body)
+    before = (bundle.root / "agent.py").read_bytes()
+    result, _ = run_race([SandboxedPolicy(bundle, FAST)], seed=0, record=False)
+    assert (result.cars[0].status, result.cars[0].dnf_reason) == ("dnf", "error")
+    assert (bundle.root / "agent.py").read_bytes() == before
