@@ -50,9 +50,14 @@ demo: install
 	mkdir -p $(ARTIFACTS)/demo
 	$(VENV)/bin/slipstream demo --data-dir $(ARTIFACTS)/demo/site --races 12 --workers 2 --port 8000
 
+# Figures, not tests: each script prints a table (and --json). Run on a quiet machine.
 bench: install
 	$(PY) bench/track_speed.py
 	$(PY) bench/env_speed.py
+	$(PY) bench/batch_speed.py
+	$(PY) bench/sandbox_overhead.py
+	$(PY) bench/race_throughput.py
+	$(PY) bench/leaderboard_load.py
 
 clean:
 	rm -rf $(VENV) $(ARTIFACTS) .pytest_cache .mypy_cache .ruff_cache
