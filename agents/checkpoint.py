@@ -657,6 +657,11 @@ def _parse_meta(raw: bytes, label: str) -> CheckpointMeta:
         raise CheckpointError(f"{label}: meta.json is nested too deeply") from err
 
 
+def looks_like_pickle(head: bytes) -> bool:
+    """Whether bytes start like a pickle (protocol 2 to 5), from their first two bytes."""
+    return head[:1] == b"\x80" and head[1:2] in (b"\x02", b"\x03", b"\x04", b"\x05")
+
+
 def _parse_weights(raw: bytes, meta: CheckpointMeta, label: str) -> TensorDict:
     digest = hashlib.sha256(raw).hexdigest()
     if digest != meta.weights_sha256:
@@ -666,7 +671,7 @@ def _parse_weights(raw: bytes, meta: CheckpointMeta, label: str) -> TensorDict:
             "(modified or corrupted)"
         )
     # Name what a wrong file is before the parser fails on it; nothing here unpickles.
-    if raw[:1] == b"\x80" and raw[1:2] in (b"\x02", b"\x03", b"\x04", b"\x05"):
+    if looks_like_pickle(raw):
         raise CheckpointError(
             f"{label}: weights.safetensors holds a pickle, not safetensors; pickles can run "
             "code and are never loaded"

@@ -29,7 +29,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from agents.baselines import BASELINES, make_baseline
-from agents.checkpoint import META_MEMBER, WEIGHTS_MEMBER, CheckpointError, TorchMLPPolicy
+from agents.checkpoint import (
+    META_MEMBER,
+    WEIGHTS_MEMBER,
+    CheckpointError,
+    TorchMLPPolicy,
+    looks_like_pickle,
+)
 from agents.policy import Policy
 from arena.observations import ObservationLayout
 from arena.sim import CarParams
@@ -65,7 +71,7 @@ def detect_format(path: Path) -> str:
     except (zipfile.BadZipFile, OSError, ValueError) as err:
         with path.open("rb") as fh:
             head = fh.read(2)
-        if head[:1] == b"\x80" and head[1:2] in (b"\x02", b"\x03", b"\x04", b"\x05"):
+        if looks_like_pickle(head):
             raise CheckpointError(
                 f"{path}: a pickle file; pickles can run code and are never loaded"
             ) from err

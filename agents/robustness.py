@@ -37,7 +37,6 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from numpy.typing import NDArray
 
 from agents.policy import Policy, PolicyError
 
@@ -251,14 +250,13 @@ def evaluate_robustness(
 
     try:
         nominal = race(dict(NOMINAL)).score
-        full = grid_points(1.0, grid)
         degradation = []
         curve_scales = sorted(set(scales) | {0.0, 1.0})  # s = 0 is the nominal race
-        total = sum(len(grid_points(s, grid)) for s in curve_scales)
+        points_at = {s: grid_points(s, grid) for s in curve_scales}
+        total = sum(map(len, points_at.values()))
         done = 0
         per_scale: dict[float, list[GridPoint]] = {}
-        for s in curve_scales:
-            points = grid_points(s, grid)
+        for s, points in points_at.items():
             eps: list[GridPoint] = []
             for point in points:
                 eps.append(race(point))
@@ -296,7 +294,7 @@ def evaluate_robustness(
         seed=seed,
         starts=[float(x) for x in starts],
         nominal=nominal,
-        grid={"n": len(full), **summarise([e.score for e in grid_eps], nominal)},
+        grid={"n": len(grid_eps), **summarise([e.score for e in grid_eps], nominal)},
         random=random,
         nature=nature,
         degradation=degradation,
@@ -305,18 +303,6 @@ def evaluate_robustness(
 
 
 # ---- nature ---------------------------------------------------------------------------------
-
-
-class PolicyDriver:
-    """A :class:`agents.policy.Policy` as a self-play driver (``act_batch`` row by row)."""
-
-    def __init__(self, policy: Policy) -> None:
-        self.policy = policy
-        self.name = getattr(policy, "name", "policy")
-
-    def act_batch(self, obs: NDArray[np.float32]) -> NDArray[np.float32]:
-        """Actions (k, 2) for observations (k, obs_size)."""
-        return np.stack([np.asarray(self.policy.act(row), dtype=np.float32) for row in obs])
 
 
 def _nature_ppo(vec_env: Any, seed: int, tb_dir: Path | None = None) -> Any:
@@ -360,7 +346,11 @@ def nature_attack(
         ``score`` (mean effective speed, m/s), ``scores``, ``steps`` and ``mean_perturbation``
         (the nature's average choice per parameter in its races).
     """
-    from agents.selfplay import SelfPlayVecEnv  # noqa: PLC0415 - heavy, imported on use
+    from agents.selfplay import (  # noqa: PLC0415 - heavy, imported on use
+        PolicyDriver,
+        SB3Driver,
+        SelfPlayVecEnv,
+    )
     from arena.env import RacingEnv  # noqa: PLC0415 - heavy, imported on use
     from arena.uncertainty import default_config  # noqa: PLC0415 - heavy, imported on use
 
@@ -380,7 +370,7 @@ def nature_attack(
         model = _nature_ppo(vec, seed)
         callback = _ProgressCallback(progress, steps) if progress is not None else None
         model.learn(total_timesteps=steps, callback=callback)
-        frozen = _freeze(model.policy, "nature")
+        frozen = SB3Driver.frozen(model.policy, "nature")
     finally:
         vec.close()
     env = RacingEnv(track=track, n_cars=1, laps=laps, uncertainty=cfg)
@@ -395,20 +385,6 @@ def nature_attack(
         "scores": [e.score for e in eps],
         "final_perturbation": {k: float(np.mean([e.perturbation[k] for e in eps])) for k in names},
     }
-
-
-def _freeze(policy: Any, name: str) -> Any:
-    """A frozen copy of an SB3 policy straight after ``learn()``.
-
-    The last minibatch's action distribution still holds tensors of the autograd graph,
-    which ``copy.deepcopy`` refuses; it is rebuilt on the next forward pass anyway.
-    """
-    from agents.selfplay import SB3Driver  # noqa: PLC0415 - heavy, imported on use
-
-    dist = getattr(policy, "action_dist", None)
-    if dist is not None and hasattr(dist, "distribution"):
-        dist.distribution = None
-    return SB3Driver.frozen(policy, name)
 
 
 def _ProgressCallback(progress: ProgressFn, total: int) -> Any:
@@ -483,7 +459,7 @@ def rarl_callback(
                 self.next += args.nature_every
                 nature_env.racer = SB3Driver.frozen(self.model.policy, "racer")
                 nature.learn(args.nature_steps, reset_num_timesteps=False, tb_log_name="nature")
-                racer_env.nature = _freeze(nature.policy, "nature")
+                racer_env.nature = SB3Driver.frozen(nature.policy, "nature")
             return True
 
         def _on_training_end(self) -> None:

@@ -61,9 +61,9 @@ from stable_baselines3.common.vec_env import VecEnv
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices, VecEnvStepReturn
 
 from agents.baselines import make_baseline
-from agents.policy import PolicyError
+from agents.policy import Policy, PolicyError
 from arena.env import RacingEnv
-from tracks import TrackError, load_track
+from tracks import TrackError
 from tracks.generator import generate_track
 
 ObsArray = NDArray[np.float32]
@@ -80,12 +80,12 @@ class Driver(Protocol):
         ...
 
 
-class BaselineDriver:
-    """A stateless baseline (pursuit, gap follower) applied row by row."""
+class PolicyDriver:
+    """A stateless :class:`agents.policy.Policy` (a baseline, say) applied row by row."""
 
-    def __init__(self, name: str, env: RacingEnv) -> None:
-        self.name = name
-        self.policy = make_baseline(name, env.layout, env.params)
+    def __init__(self, policy: Policy) -> None:
+        self.policy = policy
+        self.name = getattr(policy, "name", "policy")
 
     def act_batch(self, obs: ObsArray) -> ObsArray:
         """Actions (k, 2) for observations (k, obs_size)."""
@@ -105,7 +105,15 @@ class SB3Driver:
 
     @classmethod
     def frozen(cls, policy: BasePolicy, name: str) -> SB3Driver:
-        """A deep copy of ``policy`` in eval mode, on the CPU, with no gradients."""
+        """A deep copy of ``policy`` in eval mode, on the CPU, with no gradients.
+
+        Straight after ``learn()`` the last minibatch's action distribution still holds
+        tensors of the autograd graph, which ``copy.deepcopy`` refuses; it is dropped first
+        (the next forward pass rebuilds it).
+        """
+        dist = getattr(policy, "action_dist", None)
+        if dist is not None and hasattr(dist, "distribution"):
+            dist.distribution = None
         snap = copy.deepcopy(policy).to("cpu")
         snap.set_training_mode(False)
         for p in snap.parameters():
@@ -168,7 +176,7 @@ class OpponentPool:
     mix: dict[str, float] = field(default_factory=lambda: {"snapshot": 0.5, "pursuit": 0.5})
     max_snapshots: int = 8
     snapshots: deque[SB3Driver] = field(init=False)
-    _baselines: dict[str, BaselineDriver] = field(init=False, default_factory=dict)
+    _baselines: dict[str, PolicyDriver] = field(init=False, default_factory=dict)
 
     def __post_init__(self) -> None:
         self.snapshots = deque(maxlen=self.max_snapshots)
@@ -187,7 +195,7 @@ class OpponentPool:
         if kind == "snapshot":
             return self.snapshots[int(rng.integers(len(self.snapshots)))]
         if kind not in self._baselines:
-            self._baselines[kind] = BaselineDriver(kind, env)
+            self._baselines[kind] = PolicyDriver(make_baseline(kind, env.layout, env.params))
         return self._baselines[kind]
 
 
@@ -304,8 +312,7 @@ class SelfPlayVecEnv(VecEnv):
     # ---- env copies -----------------------------------------------------------------------
 
     def _env_for(self, copy_: _Copy, track: str) -> RacingEnv:
-        if track not in copy_.envs:
-            load_track(track)  # a clear TrackError before building anything
+        if track not in copy_.envs:  # RacingEnv loads the track (TrackError) before building
             copy_.envs[track] = RacingEnv(
                 track=track, n_cars=self.n_cars, laps=self.laps, **self.env_kwargs
             )
@@ -396,6 +403,7 @@ class SelfPlayVecEnv(VecEnv):
         dones = np.zeros(self.num_envs, dtype=bool)
         infos: list[dict[str, Any]] = [{} for _ in range(self.num_envs)]
         opp_actions = self._opponent_actions()
+        sign = -1.0 if self.role == "nature" else 1.0
         for k, c in enumerate(self._copies):
             env = c.env
             assert env is not None
@@ -407,7 +415,6 @@ class SelfPlayVecEnv(VecEnv):
             rew, term, trunc, env_infos = step[1:]
             c.length += 1
             ended = False
-            sign = -1.0 if self.role == "nature" else 1.0
             for j, agent in enumerate(self.learners):
                 car = self.cars[j]
                 r = rew.get(car, 0.0) * self.reward_scale

@@ -409,7 +409,6 @@ def _make_callback(
             self.episodes: deque[tuple[bool, int]] = deque(maxlen=100)
             self.first_lap: dict[str, float] | None = None
             self.first_clean_lap: dict[str, float] | None = None
-            self.evaluations = 0
             self.last_eval_at = -1
             self.stop_reason = "total_timesteps"
             self.best: dict[str, Any] | None = None
@@ -470,7 +469,6 @@ def _make_callback(
                 laps=args.eval_laps,
                 env_kwargs=env_kwargs,
             )
-            self.evaluations += 1
             self.last_eval_at = t
             if result["finished_lap"] and self.first_lap is None:
                 self.first_lap = {"timesteps": t, "wall_s": round(wall, 1)}

@@ -73,7 +73,13 @@ JITTER = [
     PARAM_NAMES.index(n)
     for n in ("brightness", "contrast", "hue", "image_noise", "shift", "shadow")
 ]
+JITTER_NOMINAL = nominal_values()[JITTER]  # levels at which an image is left untouched
 Obs = NDArray[np.float32] | NDArray[np.uint8] | dict[str, NDArray[np.float32]]
+
+
+def default_max_cycles(race_distance: float, control_hz: int) -> int:
+    """The default step limit: the time to cover ``race_distance`` m at 2.5 m/s, plus 5 s."""
+    return math.ceil((5.0 + race_distance / 2.5) * control_hz)
 
 
 class RacingEnv(ParallelEnv):
@@ -253,7 +259,7 @@ class RacingEnv(ParallelEnv):
         self._lookahead = np.asarray(LOOKAHEAD)
         self.discrete = DiscreteActions(*discrete_actions, top_speed=self.params.top_speed)
         self.race_distance = laps * self.base_track.length
-        self.max_cycles = max_cycles or math.ceil((5.0 + self.race_distance / 2.5) * control_hz)
+        self.max_cycles = max_cycles or default_max_cycles(self.race_distance, control_hz)
         self.cars = [f"car_{i}" for i in range(n_cars)]
         adversarial = self._unc is not None and self._unc.mode == "adversarial"
         self.natures = [NATURE_PREFIX + a for a in self.cars] if adversarial else []
@@ -349,8 +355,8 @@ class RacingEnv(ParallelEnv):
         self.base_track, self.sim = self._worlds[name]
         self._track_key = name
         self.race_distance = self.laps * self.base_track.length
-        self.max_cycles = self._fixed_max_cycles or math.ceil(
-            (5.0 + self.race_distance / 2.5) * self.control_hz
+        self.max_cycles = self._fixed_max_cycles or default_max_cycles(
+            self.race_distance, self.control_hz
         )
         self._renderer = None
 
@@ -785,10 +791,9 @@ class RacingEnv(ParallelEnv):
     def _jitter_images(self, images: list[NDArray[np.uint8]]) -> list[Obs]:
         """Each car's camera image with its perception perturbation (untouched if nominal)."""
         out: list[Obs] = []
-        nominal = nominal_values()[JITTER]
         for i, img in enumerate(images):
             levels = self.perturbation.values[i, JITTER]
-            if np.array_equal(levels, nominal):
+            if np.array_equal(levels, JITTER_NOMINAL):
                 out.append(img)
                 continue
             named = dict(zip(JITTER_NAMES, levels.tolist(), strict=True))

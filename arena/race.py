@@ -28,9 +28,9 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 from gymnasium import spaces
 
+from arena.colours import car_colour
 from arena.env import RacingEnv
 from arena.replay import ReplayLog
-from arena.sim import car_colour
 from arena.version import ENV_VERSION
 from tracks import Track
 

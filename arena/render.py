@@ -6,7 +6,7 @@ import numpy as np
 from numpy.typing import NDArray
 from PIL import Image, ImageDraw
 
-from arena.sim import car_colour
+from arena.colours import car_colour
 from arena.walls import Walls
 from tracks import Track
 from tracks.geometry import signed_area

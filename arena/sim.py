@@ -303,7 +303,6 @@ class Simulator:
             self._set_mass(body, p.mass)
             self.cars.append(body)
         self._body_index = {b: i for i, b in enumerate(self.cars)}
-        self._inertia_yaw = p.mass * (p.length**2 + p.width**2) / 12.0
 
     def _build_walls(self) -> list[int]:
         """Static bodies of boxes whose inner faces follow :class:`Walls`.

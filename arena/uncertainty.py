@@ -45,6 +45,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields, replace
+from functools import cached_property
 from typing import Any, Literal, cast
 
 import numpy as np
@@ -212,25 +213,26 @@ class UncertaintyConfig:
 
     # ---- the box ------------------------------------------------------------------------
 
-    @property
+    # Cached (the config is frozen; the env reads these every step) and read-only.
+    @cached_property
     def lows(self) -> FloatArray:
         """(n_params,) lower bounds in :data:`PARAM_NAMES` order."""
-        return np.array([b[0] for b in self._intervals()], dtype=np.float64)
+        return _read_only(np.array([b[0] for b in self._intervals()], dtype=np.float64))
 
-    @property
+    @cached_property
     def highs(self) -> FloatArray:
         """(n_params,) upper bounds in :data:`PARAM_NAMES` order."""
-        return np.array([b[1] for b in self._intervals()], dtype=np.float64)
+        return _read_only(np.array([b[1] for b in self._intervals()], dtype=np.float64))
 
     @property
     def nominal(self) -> FloatArray:
         """(n_params,) the unperturbed values."""
         return nominal_values()
 
-    @property
+    @cached_property
     def free(self) -> NDArray[np.int64]:
         """Indices of the parameters with ``lo < hi`` (what nature chooses)."""
-        return np.flatnonzero(self.lows < self.highs)
+        return _read_only(np.flatnonzero(self.lows < self.highs))
 
     @property
     def free_names(self) -> tuple[str, ...]:
@@ -289,6 +291,12 @@ class UncertaintyConfig:
                 value = dict(value)
             out[f.name] = value
         return out
+
+
+def _read_only(arr: NDArray[Any]) -> NDArray[Any]:
+    """``arr``, made unwritable (safe to cache and share)."""
+    arr.flags.writeable = False
+    return arr
 
 
 def nominal_values() -> FloatArray:

@@ -20,6 +20,7 @@ from fastapi import FastAPI, Request
 from fastapi.responses import JSONResponse
 from starlette.types import ASGIApp, Receive, Scope, Send
 
+from leaderboard import web
 from leaderboard.api import api_router
 from leaderboard.db import make_engine, make_sessionmaker
 from leaderboard.errors import LeaderboardError
@@ -99,16 +100,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_exception_handler(LeaderboardError, _leaderboard_error)
     app.add_middleware(UploadSizeLimit, max_bytes=settings.max_upload_bytes + MULTIPART_SLACK)
     app.include_router(api_router)
-    _include_website(app, settings)
-    return app
-
-
-def _include_website(app: FastAPI, settings: Settings) -> None:
-    try:
-        from leaderboard import web  # noqa: PLC0415 - the website is optional until it lands
-    except ModuleNotFoundError as err:  # pragma: no cover - only while the package is missing
-        if err.name not in ("leaderboard.web", "leaderboard.web.pages"):
-            raise
-        return
     app.include_router(web.web_router)
     web.mount(app, settings)
+    return app

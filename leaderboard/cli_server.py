@@ -193,19 +193,13 @@ def submit_command(args: argparse.Namespace) -> int:
 def users_add_command(args: argparse.Namespace) -> int:
     """Run ``slipstream users add``."""
     from leaderboard import auth  # noqa: PLC0415 - lazy: keeps `slipstream --help` fast
-    from leaderboard.db import make_engine, make_sessionmaker, session_scope  # noqa: PLC0415
-    from leaderboard.migrations import upgrade  # noqa: PLC0415
+    from leaderboard.db import connect, session_scope  # noqa: PLC0415
 
     settings = settings_from(args)
     settings.ensure_dirs()
-    engine = make_engine(settings.db_url)
-    try:
-        upgrade(settings.db_url, engine=engine)
-        with session_scope(make_sessionmaker(engine)) as session:
-            user, token = auth.create_user(session, name=args.name, is_admin=args.admin)
-            name = user.name
-    finally:
-        engine.dispose()
+    with connect(settings.db_url, migrate=True) as sessions, session_scope(sessions) as session:
+        user, token = auth.create_user(session, name=args.name, is_admin=args.admin)
+        name = user.name
     if args.json:
         print(json.dumps({"name": name, "token": token}))
     else:

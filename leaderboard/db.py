@@ -52,6 +52,23 @@ def make_sessionmaker(engine: Engine) -> sessionmaker[Session]:
 
 
 @contextmanager
+def connect(url: str, *, migrate: bool = False) -> Iterator[sessionmaker[Session]]:
+    """A session factory on a new engine for ``url``, disposed on exit (for commands).
+
+    With ``migrate``, the schema is first brought up to ``head``.
+    """
+    engine = make_engine(url)
+    try:
+        if migrate:
+            from leaderboard.migrations import upgrade  # noqa: PLC0415 - alembic, when asked
+
+            upgrade(url, engine=engine)
+        yield make_sessionmaker(engine)
+    finally:
+        engine.dispose()
+
+
+@contextmanager
 def session_scope(factory: sessionmaker[Session]) -> Iterator[Session]:
     """One transaction: commit on success, roll back on any exception."""
     session = factory()

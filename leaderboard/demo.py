@@ -29,7 +29,6 @@ DEFAULT_DIR = Path("artifacts/demo/site")
 CHECKPOINT = Path(__file__).resolve().parents[1] / "agents" / "data" / "ppo_racer.zip"
 MARKER = ".slipstream-demo"  # marks a folder this command made, so it may delete it
 HOUSE = "house"
-BASELINES = ("pursuit", "gap", "random")
 ENV_KEYS = ("lidar_rays", "k_opponents")  # a checkpoint's env settings a manifest can declare
 
 
@@ -98,23 +97,17 @@ def checkpoint_bundle(out: Path, author: str = HOUSE) -> Path:
 def seed(settings: Any) -> list[str]:
     """Create the house user and enter the baselines and the checkpoint; their names."""
     from leaderboard import auth
-    from leaderboard.db import make_engine, make_sessionmaker, session_scope
-    from leaderboard.migrations import upgrade
-    from leaderboard.uploads import add_baseline, upload
+    from leaderboard.db import connect, session_scope
+    from leaderboard.uploads import BASELINES, add_baseline, upload
 
-    engine = make_engine(settings.db_url)
-    try:
-        upgrade(settings.db_url, engine=engine)
-        with session_scope(make_sessionmaker(engine)) as session:
-            user, _token = auth.create_user(session, name=HOUSE, is_admin=True)
-            for baseline in BASELINES:
-                add_baseline(session, settings, user=user, baseline=baseline)
-            with tempfile.TemporaryDirectory(prefix="slipstream-demo-") as tmp:
-                bundle = checkpoint_bundle(Path(tmp) / "ppo_racer.zip")
-                with bundle.open("rb") as stream:
-                    upload(session, settings, user=user, stream=stream)
-    finally:
-        engine.dispose()
+    with connect(settings.db_url, migrate=True) as sessions, session_scope(sessions) as session:
+        user, _token = auth.create_user(session, name=HOUSE, is_admin=True)
+        for baseline in BASELINES:
+            add_baseline(session, settings, user=user, baseline=baseline)
+        with tempfile.TemporaryDirectory(prefix="slipstream-demo-") as tmp:
+            bundle = checkpoint_bundle(Path(tmp) / "ppo_racer.zip")
+            with bundle.open("rb") as stream:
+                upload(session, settings, user=user, stream=stream)
     return [*BASELINES, "ppo_racer"]
 
 
@@ -124,15 +117,11 @@ def run_races(settings: Any, races: int, workers: int) -> Any:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
 
     from leaderboard import queue
-    from leaderboard.db import make_engine, make_sessionmaker
+    from leaderboard.db import connect
     from leaderboard.worker import Worker
 
-    engine = make_engine(settings.db_url)
-    try:
-        with make_sessionmaker(engine)() as session:
-            validation = queue.pending(session)
-    finally:
-        engine.dispose()
+    with connect(settings.db_url) as sessions, sessions() as session:
+        validation = queue.pending(session)
     total = validation + races
     worker = Worker(settings, workers=workers, schedule=True, owner="demo")
     try:
@@ -156,14 +145,10 @@ def run_races(settings: Any, races: int, workers: int) -> Any:
 def leaderboard_rows(settings: Any) -> list[dict[str, Any]]:
     """The leaderboard's rows (as the JSON API gives them)."""
     from leaderboard import queries
-    from leaderboard.db import make_engine, make_sessionmaker
+    from leaderboard.db import connect
 
-    engine = make_engine(settings.db_url)
-    try:
-        with make_sessionmaker(engine)() as session:
-            page = queries.leaderboard(session, per_page=queries.MAX_PER_PAGE)
-    finally:
-        engine.dispose()
+    with connect(settings.db_url) as sessions, sessions() as session:
+        page = queries.leaderboard(session, per_page=queries.MAX_PER_PAGE)
     return [row.model_dump() for row in page.items]
 
 

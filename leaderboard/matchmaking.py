@@ -19,6 +19,7 @@ import random
 from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cache
 
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
@@ -149,13 +150,17 @@ def pick_track(session: Session, tracks: Sequence[str], rng: random.Random) -> s
     return rng.choice([t for t in tracks if used.get(t, 0) == fewest])
 
 
-def track_pool(settings: Settings) -> list[str]:
-    """Tracks for ranked races: ``settings.tracks``, else the built-in library."""
-    if settings.tracks:
-        return list(settings.tracks)
+@cache
+def library_tracks() -> tuple[str, ...]:
+    """The built-in track names (read once: the library does not change while serving)."""
     from tracks import list_tracks  # noqa: PLC0415 - numpy/scipy only; loaded when scheduling
 
-    return list_tracks()
+    return tuple(list_tracks())
+
+
+def track_pool(settings: Settings) -> list[str]:
+    """Tracks for ranked races: ``settings.tracks``, else the built-in library."""
+    return list(settings.tracks or library_tracks())
 
 
 def schedule_ranked(

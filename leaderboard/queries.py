@@ -329,7 +329,9 @@ def submission_detail(session: Session, submission_id: int, *, races: int = 20) 
         description=sub.description,
         rank=submission_rank(session, sub),
         versions=[VersionInfo.model_validate(v) for v in versions],
-        recent_races=submission_races(session, submission_id, per_page=races).items,
+        recent_races=submission_races(session, submission_id, per_page=races).items
+        if races
+        else [],
         rating_history=rating_history(session, submission_id),
     )
 
@@ -347,7 +349,7 @@ def rating_history(session: Session, submission_id: int) -> list[RatingPoint]:
 # ---- races -----------------------------------------------------------------------------------
 
 
-def _race_summaries(session: Session, races: Sequence[Race]) -> list[RaceSummary]:
+def _race_summaries(races: Sequence[Race]) -> list[RaceSummary]:
     return [RaceSummary(**_race_fields(r)) for r in races]
 
 
@@ -395,7 +397,7 @@ def races(
         .limit(per_page)
         .options(selectinload(Race.entries))
     ).all()
-    return Page(items=_race_summaries(session, rows), total=total, page=page, per_page=per_page)
+    return Page(items=_race_summaries(rows), total=total, page=page, per_page=per_page)
 
 
 def submission_races(
@@ -420,7 +422,7 @@ def submission_races(
         .order_by(Race.id.desc())
         .options(selectinload(Race.entries))
     ).all()
-    return Page(items=_race_summaries(session, rows), total=total, page=page, per_page=per_page)
+    return Page(items=_race_summaries(rows), total=total, page=page, per_page=per_page)
 
 
 def race_detail(session: Session, race_id: int) -> RaceDetail:
@@ -509,15 +511,32 @@ def tracks(session: Session, names: Sequence[str]) -> list[TrackSummary]:
             .group_by(Race.track)
         ).all()
     )
+    # One query for every track's record: the first row of each track in track_records' order.
+    ranked = (
+        select(
+            TrackRecord.track,
+            TrackRecord.best_lap,
+            Submission.name,
+            func.row_number()
+            .over(partition_by=TrackRecord.track, order_by=(TrackRecord.best_lap, TrackRecord.id))
+            .label("n"),
+        )
+        .join(Submission, Submission.id == TrackRecord.submission_id)
+        .where(TrackRecord.track.in_(names))
+        .subquery()
+    )
+    best = {
+        track: (lap, holder)
+        for track, lap, holder in session.execute(
+            select(ranked.c.track, ranked.c.best_lap, ranked.c.name).where(ranked.c.n == 1)
+        )
+    }
     out = []
     for name in names:
-        best = track_records(session, name, limit=1)
+        record, holder = best.get(name, (None, None))
         out.append(
             TrackSummary(
-                name=name,
-                races=int(counts.get(name, 0)),
-                record=best[0].best_lap if best else None,
-                record_holder=best[0].name if best else None,
+                name=name, races=int(counts.get(name, 0)), record=record, record_holder=holder
             )
         )
     return out

@@ -135,27 +135,32 @@ def reject_version(session: Session, version: SubmissionVersion, reason: str) ->
 
 
 def _update_records(session: Session, race: Race) -> None:
-    """Keep each submission's best lap per track."""
-    for entry in race.entries:
-        if entry.submission_id is None or entry.best_lap is None:
-            continue
-        record = session.scalar(
+    """Keep each submission's best lap per track (one query for the race's records)."""
+    ids = [e.submission_id for e in race.entries if e.submission_id is not None]
+    records = {
+        r.submission_id: r
+        for r in session.scalars(
             select(TrackRecord).where(
-                TrackRecord.track == race.track, TrackRecord.submission_id == entry.submission_id
+                TrackRecord.track == race.track, TrackRecord.submission_id.in_(ids)
             )
         )
+    }
+    for entry in race.entries:
+        sub_id, lap = entry.submission_id, entry.best_lap
+        if sub_id is None or lap is None:
+            continue
+        record = records.get(sub_id)
         if record is None:
-            session.add(
-                TrackRecord(
-                    track=race.track,
-                    submission_id=entry.submission_id,
-                    version_id=entry.version_id,
-                    race_id=race.id,
-                    best_lap=entry.best_lap,
-                )
+            records[sub_id] = TrackRecord(
+                track=race.track,
+                submission_id=sub_id,
+                version_id=entry.version_id,
+                race_id=race.id,
+                best_lap=lap,
             )
-        elif entry.best_lap < record.best_lap:
-            record.best_lap = entry.best_lap
+            session.add(records[sub_id])
+        elif lap < record.best_lap:
+            record.best_lap = lap
             record.version_id = entry.version_id
             record.race_id = race.id
             record.set_at = utcnow()

@@ -102,15 +102,7 @@ def upload(
         size, sha = save_stream(stream, tmp, settings.max_upload_bytes)
         manifest = validate_bundle(tmp, settings)
         if submission_id is None:
-            sub = session.scalar(
-                select(Submission).where(
-                    Submission.user_id == user.id, Submission.name == manifest.name
-                )
-            )
-            if sub is None:
-                sub = Submission(user_id=user.id, name=manifest.name)
-                session.add(sub)
-                session.flush()
+            sub = _named_submission(session, user, manifest.name)
         else:
             sub = owned_submission(session, user=user, submission_id=submission_id)
         if manifest.description:
@@ -143,17 +135,23 @@ def add_baseline(
     if baseline not in BASELINES:
         raise NotFound(f"no baseline {baseline!r} (one of {', '.join(BASELINES)})")
     name = name or baseline
-    sub = session.scalar(
-        select(Submission).where(Submission.user_id == user.id, Submission.name == name)
-    )
-    if sub is None:
-        sub = Submission(user_id=user.id, name=name, description=f"the {baseline} baseline")
-        session.add(sub)
-        session.flush()
+    sub = _named_submission(session, user, name, description=f"the {baseline} baseline")
     version = _new_version(session, settings, sub, source=baseline, fmt="baseline")
     version.manifest = {"name": name, "author": user.name, "format": "baseline"}
     schedule_validation(session, settings, version)
     return version
+
+
+def _named_submission(session: Session, user: User, name: str, description: str = "") -> Submission:
+    """The user's submission called ``name``, created (with ``description``) if missing."""
+    sub = session.scalar(
+        select(Submission).where(Submission.user_id == user.id, Submission.name == name)
+    )
+    if sub is None:
+        sub = Submission(user_id=user.id, name=name, description=description)
+        session.add(sub)
+        session.flush()
+    return sub
 
 
 def _new_version(
@@ -161,13 +159,12 @@ def _new_version(
 ) -> SubmissionVersion:
     if sub.status == "withdrawn":
         sub.status = "active" if sub.active_version_id is not None else "pending"
-    latest = session.scalar(
-        select(func.max(SubmissionVersion.version)).where(SubmissionVersion.submission_id == sub.id)
-    )
-    count = session.scalar(
-        select(func.count(SubmissionVersion.id)).where(SubmissionVersion.submission_id == sub.id)
-    )
-    if (count or 0) >= settings.max_versions:
+    latest, count = session.execute(
+        select(func.max(SubmissionVersion.version), func.count(SubmissionVersion.id)).where(
+            SubmissionVersion.submission_id == sub.id
+        )
+    ).one()
+    if count >= settings.max_versions:
         raise Conflict(f"submission {sub.name!r} has {count} versions; the limit is reached")
     version = SubmissionVersion(
         submission_id=sub.id, version=(latest or 0) + 1, source=source, format=fmt

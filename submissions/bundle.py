@@ -75,7 +75,16 @@ MAX_ENV_VERSION = 32  # characters
 MAX_PATH = 512  # characters in a member's path
 MAX_DEPTH = 16  # folders in a member's path
 ENV_KEYS = {"lidar_rays": (1, 4096), "k_opponents": (0, 16)}  # declared space: allowed range
-REQUIRED = ("schema", "name", "author", "format", "entry", "obs_mode", "action_mode")
+REQUIRED = (
+    "schema",
+    "name",
+    "author",
+    "format",
+    "entry",
+    "obs_mode",
+    "action_mode",
+    "env_version",
+)
 OPTIONAL = ("class_name", "env", "description")
 ZIP_MAGIC = b"PK\x03\x04"
 _CHUNK = 1 << 16
@@ -135,15 +144,6 @@ class EnvSpec:
 
         return cls(env_version=ENV_VERSION, compatible_versions=COMPATIBLE_ENV_VERSIONS)
 
-    def to_dict(self) -> dict[str, Any]:
-        """Plain JSON: the env kwargs a race uses plus the version."""
-        return {
-            "env_version": self.env_version,
-            "lidar_rays": self.lidar_rays,
-            "k_opponents": self.k_opponents,
-            "action_modes": list(self.action_modes),
-        }
-
 
 @dataclass(frozen=True)
 class Manifest:
@@ -173,10 +173,10 @@ class Manifest:
         """
         if not isinstance(doc, dict):
             raise BundleError(f"{MANIFEST_NAME} must be a JSON object, not {_kind(doc)}")
-        unknown = sorted(set(doc) - set(REQUIRED) - set(OPTIONAL) - {"env_version"})
+        unknown = sorted(set(doc) - set(REQUIRED) - set(OPTIONAL))
         if unknown:
             raise BundleError(f"{MANIFEST_NAME}: unknown key(s) {', '.join(map(repr, unknown))}")
-        missing = [k for k in (*REQUIRED, "env_version") if k not in doc]
+        missing = [k for k in REQUIRED if k not in doc]
         if missing:
             raise BundleError(f"{MANIFEST_NAME}: missing key(s) {', '.join(missing)}")
         if doc["schema"] != MANIFEST_SCHEMA or isinstance(doc["schema"], bool):

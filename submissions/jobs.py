@@ -36,6 +36,7 @@ from submissions.errors import SubmissionError
 if TYPE_CHECKING:
     from agents.policy import Policy
     from submissions.bundle import Bundle
+    from submissions.remote import SandboxedPolicy
     from submissions.sandbox import SandboxLimits
 
 BASELINE_NAMES = ("pursuit", "gap", "random")  # agents.baselines.BASELINES (tested equal)
@@ -205,7 +206,7 @@ class JobResult:
         )
 
 
-def _sandboxed(bundle: Bundle, job: RaceJob, env: EnvSpec, name: str) -> Any:
+def _sandboxed(bundle: Bundle, job: RaceJob, env: EnvSpec, name: str) -> SandboxedPolicy:
     from submissions.remote import SandboxedPolicy, make_env_spec  # noqa: PLC0415 - the sandbox
 
     spec = make_env_spec(lidar_rays=env.lidar_rays, k_opponents=env.k_opponents)
@@ -237,11 +238,11 @@ def run_race_job(job: RaceJob) -> JobResult:
     out_dir = Path(job.out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     policies: list[Policy] = []
-    sandboxed: list[tuple[int, Any]] = []
+    sandboxed: list[SandboxedPolicy] = []
     with tempfile.TemporaryDirectory(prefix=f"slipstream-{job.job_id}-") as tmp:
         try:
             bundles: dict[str, Bundle] = {}
-            for i, entrant in enumerate(job.entrants):
+            for entrant in job.entrants:
                 if entrant.is_baseline:
                     policy: Any = make_baseline(entrant.source, layout)
                     policy.name = entrant.name
@@ -250,7 +251,7 @@ def run_race_job(job: RaceJob) -> JobResult:
                         dest = Path(tmp) / f"bundle_{len(bundles)}"
                         bundles[entrant.source] = open_bundle(Path(entrant.source), dest, env=env)
                     policy = _sandboxed(bundles[entrant.source], job, env, entrant.name)
-                    sandboxed.append((i, policy))
+                    sandboxed.append(policy)
                 policies.append(policy)
             result, replay = run_race(
                 policies,
@@ -262,7 +263,7 @@ def run_race_job(job: RaceJob) -> JobResult:
                 env_kwargs={"lidar_rays": env.lidar_rays, "k_opponents": env.k_opponents},
             )
         finally:
-            for _, policy in sandboxed:
+            for policy in sandboxed:
                 policy.close()
     assert replay is not None  # record=True
     replay.save(job.replay_path)
@@ -276,7 +277,7 @@ def run_race_job(job: RaceJob) -> JobResult:
         result=result.to_dict(),
         replay_path=str(job.replay_path),
         viser_path=viser_path,
-        sandbox=_weakest_mode([str(p.mode) for _, p in sandboxed]),
+        sandbox=_weakest_mode([p.mode for p in sandboxed]),
         duration_s=round(time.perf_counter() - start, 3),
         entrants=[asdict(e) for e in job.entrants],
     )

@@ -107,8 +107,7 @@ class SandboxLimits:
             raise SandboxError(
                 f"memory_mb must be at least 1024 (torch needs it), got {self.memory_mb}"
             )
-        ints = ("cpu_seconds", "open_files", "file_size_mb", "max_processes", "tmpfs_mb")
-        for name in ints:
+        for name in ("cpu_seconds", "file_size_mb", "max_processes", "tmpfs_mb"):
             if getattr(self, name) < 1:
                 raise SandboxError(f"{name} must be at least 1, got {getattr(self, name)}")
         if self.open_files < 16:
@@ -425,11 +424,6 @@ def package_dirs() -> dict[str, str]:
     return {name: str(root / name) for name in PACKAGES}
 
 
-def worker_python() -> str:
-    """The interpreter the worker runs with (this one's venv, resolved inside the binds)."""
-    return sys.executable
-
-
 def bwrap_command(
     worker_args: Sequence[str], bundle_root: Path, limits: SandboxLimits, seccomp_fd: int
 ) -> list[str]:
@@ -450,7 +444,7 @@ def bwrap_command(
     for name, path in package_dirs().items():
         cmd += ["--ro-bind", path, f"{APP}/{name}"]
     cmd += ["--ro-bind", str(bundle_root), "/submission", "--remount-ro", "/", "--chdir", "/tmp"]
-    cmd += ["--seccomp", str(seccomp_fd), "--", worker_python(), "-B", "-m", "submissions.worker"]
+    cmd += ["--seccomp", str(seccomp_fd), "--", sys.executable, "-B", "-m", "submissions.worker"]
     return [*cmd, "--root", "/submission", *worker_args]
 
 
@@ -558,7 +552,7 @@ class SandboxProcess:
         for name, path in package_dirs().items():
             (app / name).symlink_to(path)
         read, write = fallback_paths(root, tmp)
-        cmd = [worker_python(), "-B", "-m", "submissions.worker", "--root", str(root), *args]
+        cmd = [sys.executable, "-B", "-m", "submissions.worker", "--root", str(root), *args]
         cmd += ["--seccomp-fd", str(filter_fd)]
         for path in read:
             cmd += ["--read", path]

@@ -347,25 +347,16 @@ class Track:
         return Projection(s=s, d=db, heading=heading, segment=seg)
 
     def _project_block(self, p: FloatArray) -> tuple[IntArray, FloatArray, FloatArray]:
-        """Segment index (M,), fraction ``t`` (M,) in [0, 1] and offset ``d`` (M,) m of points,
-        with candidate segments next to the two nearest vertices of the k-d tree."""
+        """Segment index (M,), fraction ``t`` (M,) in [0, 1] and offset ``d`` (M,) m of points.
+
+        Scalar (x, y) arrays of shape (M, C) over C candidate segments rather than (M, C, 2)
+        stacks: no strided last-axis access, and most operations run in place.
+        """
         n = self.n_points
         k = min(2, n)
         _, nearest = self._tree.query(p, k=k)
         nearest = np.asarray(nearest).reshape(len(p), k)
         cand = np.concatenate([nearest, nearest - 1], axis=1) % n  # (M, 2k) segment indices
-        seg, tb, db, _ = self._solve(p, cand, nearest[:, 0])
-        return seg, tb, db
-
-    def _solve(
-        self, p: FloatArray, cand: IntArray, vertex: IntArray
-    ) -> tuple[IntArray, FloatArray, FloatArray, IntArray]:
-        """Best of candidate segments (M, C) for points (M, 2): segment, t, d, column.
-
-        Scalar (x, y) arrays of shape (M, C) rather than (M, C, 2) stacks: no strided
-        last-axis access, and most operations run in place. ``vertex`` (M,) is the fallback
-        where no candidate has a frame solution.
-        """
         cx, cy, nx, ny, ex, ey, dnx, dny, qa, en = (a[cand] for a in self._frame)
         qx = p[:, :1] - cx  # q = p - c0, (M, C)
         qy = p[:, 1:] - cy
@@ -397,19 +388,18 @@ class Track:
         d /= ntx
         valid = (disc >= 0) & (t >= -1e-9) & (t <= 1 + 1e-9)
         cost = np.where(valid, np.abs(d), np.inf)
-        col = np.argmin(cost, axis=1)
-        best = col[:, None]
+        best = np.argmin(cost, axis=1)[:, None]
         seg = np.take_along_axis(cand, best, axis=1)[:, 0]
         tb = np.clip(np.take_along_axis(t, best, axis=1)[:, 0], 0.0, 1.0)
         db = np.take_along_axis(d, best, axis=1)[:, 0]
         # Far off the road on the inside of a bend no frame solution exists: use the vertex.
         none = ~np.isfinite(np.take_along_axis(cost, best, axis=1)[:, 0])
         if np.any(none):
-            v = vertex[none]
+            v = nearest[none, 0]
             seg[none] = v
             tb[none] = 0.0
             db[none] = np.einsum("mk,mk->m", p[none] - self.centre[v], self.normals[v])
-        return seg, tb, db, col
+        return seg, tb, db
 
     def to_frenet(self, points: ArrayLike) -> FloatArray:
         """Cartesian (M, 2) [x m, y m] → Frenet (M, 2) [s m, d m]."""

@@ -162,8 +162,9 @@ class BatchParallelEnv(ParallelEnv):
         self.off_track_count = np.zeros(n, dtype=np.int64)
         self._was_off = np.zeros(n, dtype=bool)
         self.active = np.ones(n, dtype=bool)
-        zero = {k_: 0.0 for k_ in RACING_TERMS}
-        infos = {a: self._info(i, [], False, False, zero) for i, a in enumerate(self.agents)}
+        zero = dict.fromkeys(RACING_TERMS, 0.0)
+        cars = self._host_cars()
+        infos = {a: self._info(i, cars, [], False, False, zero) for i, a in enumerate(self.agents)}
         return {a: obs[i] for i, a in enumerate(self.agents)}, infos
 
     # ---- step -------------------------------------------------------------------------------
@@ -218,6 +219,7 @@ class BatchParallelEnv(ParallelEnv):
             self.dnf_reason[i] = "timeout"
         reward = h.terms["progress"] if self.reward_mode == "progress" else h.reward
         obs, rew, term, trunc, infos = {}, {}, {}, {}, {}
+        cars = self._host_cars()
         for agent in self.agents:
             k = self.agent_index[agent]
             obs[agent] = h.obs[k]
@@ -234,7 +236,7 @@ class BatchParallelEnv(ParallelEnv):
                 for j in np.flatnonzero(h.contact[k])
             ]
             terms = {name: float(v[k]) for name, v in h.terms.items()}
-            infos[agent] = self._info(k, events, bool(off[k]), bool(h.wall[k]), terms)
+            infos[agent] = self._info(k, cars, events, bool(off[k]), bool(h.wall[k]), terms)
         done = h.terminated | h.truncated
         self.active &= ~done
         self.agents = [a for a in self.agents if not done[self.agent_index[a]]]
@@ -245,28 +247,46 @@ class BatchParallelEnv(ParallelEnv):
         """(n_cars,) laps each car has completed in this episode."""
         return np.maximum(self.sim.ops.to_numpy(self.sim.state.laps)[0], 0)
 
+    def _host_cars(self) -> dict[str, list[Any]]:
+        """Environment 0's per-car state for the infos, as Python lists (n_cars,): one
+        device-to-host copy per quantity and step, not one per car."""
+        st, ops = self.sim.state, self.sim.ops
+
+        def row(a: Any) -> list[Any]:
+            return list(ops.to_numpy(a)[0].tolist())
+
+        yaw, vx, vy = row(st.car.yaw), row(st.car.vx), row(st.car.vy)
+        return {
+            "laps": [max(k, 0) for k in row(st.laps)],
+            "speed": [
+                math.cos(y) * u + math.sin(y) * v for y, u, v in zip(yaw, vx, vy, strict=True)
+            ],
+            "s": row(st.s),
+            "race_progress": row(st.race_progress),
+            "rank": row(st.positions),
+        }
+
     def _info(
         self,
         i: int,
+        cars: dict[str, list[Any]],
         collisions: list[dict[str, Any]],
         off: bool,
         wall: bool,
         terms: dict[str, float],
     ) -> dict[str, Any]:
-        st, ops = self.sim.state, self.sim.ops
-        done_laps = int(self.laps_completed[i])
-        yaw, vx, vy = (float(ops.to_numpy(a)[0, i]) for a in (st.car.yaw, st.car.vx, st.car.vy))
+        done_laps = cars["laps"][i]
         info: dict[str, Any] = {
             "lap": min(done_laps + 1, self.laps),
             "laps_completed": done_laps,
             "lap_times": list(self.lap_times[i]),
-            "s": float(ops.to_numpy(st.s)[0, i]),
-            "race_progress": float(ops.to_numpy(st.race_progress)[0, i]),
-            "rank": int(ops.to_numpy(st.positions)[0, i]),
+            "s": cars["s"][i],
+            "race_progress": cars["race_progress"][i],
+            "rank": cars["rank"][i],
             "collisions": collisions,
             "off_track": off,
             "wall_contact": wall,
-            "speed": math.cos(yaw) * vx + math.sin(yaw) * vy,
+            "speed": cars["speed"][i],
             "reward_terms": terms,
         }
         if self.dnf_reason[i] is not None:

@@ -40,7 +40,7 @@ from arena.batch.lidar import car_pairs, car_ranges, ray_angles, wall_ranges
 from arena.batch.maps import TrackMaps
 from arena.batch.track import DeviceTrack
 from arena.batch.xp import Array, get_ops
-from arena.env import CUT_JUMP, STUCK_DISTANCE
+from arena.env import CUT_JUMP, STUCK_DISTANCE, default_max_cycles
 from arena.lidar import DEFAULT_FOV, DEFAULT_RANGE
 from arena.observations import (
     LOOKAHEAD,
@@ -201,7 +201,7 @@ class BatchSim:
         self.auto_reset = auto_reset
         self.random_starts = random_starts
         self.race_distance = laps * self.track.length
-        self.max_cycles = max_cycles or math.ceil((5.0 + self.race_distance / 2.5) * control_hz)
+        self.max_cycles = max_cycles or default_max_cycles(self.race_distance, control_hz)
         self.maps = TrackMaps.build(self.track, runoff, self.max_range)
         self.dev = DeviceTrack(self.maps, ops)
         p = self.params

@@ -47,17 +47,26 @@ SettingsDep = Annotated[Settings, Depends(get_settings)]
 Credentials = Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)]
 
 
+def _token(credentials: HTTPAuthorizationCredentials | None) -> str:
+    if credentials is None:
+        raise NotAuthenticated("missing API token: send 'Authorization: Bearer <token>'")
+    return credentials.credentials
+
+
+def _user(session: Session, token: str) -> User:
+    user = user_for_token(session, token)
+    if user is None:
+        raise NotAuthenticated("invalid or revoked API token")
+    return user
+
+
 def current_user(session: SessionDep, credentials: Credentials) -> User:
     """The user of the request's bearer token.
 
     Raises:
         NotAuthenticated: no token, or an unknown or revoked one.
     """
-    if credentials is None:
-        raise NotAuthenticated("missing API token: send 'Authorization: Bearer <token>'")
-    user = user_for_token(session, credentials.credentials)
-    if user is None:
-        raise NotAuthenticated("invalid or revoked API token")
+    user = _user(session, _token(credentials))
     session.commit()  # last_used_at
     return user
 
@@ -72,17 +81,11 @@ def require_admin(session: SessionDep, settings: SettingsDep, credentials: Crede
         NotAuthenticated: no token, or an unknown one.
         Forbidden: a valid token of a user who is not an admin.
     """
-    if credentials is None:
-        raise NotAuthenticated("missing API token: send 'Authorization: Bearer <token>'")
+    token = _token(credentials)
     admin = settings.admin_token
-    if admin is not None and hmac.compare_digest(
-        credentials.credentials.encode(), admin.get_secret_value().encode()
-    ):
+    if admin is not None and hmac.compare_digest(token.encode(), admin.get_secret_value().encode()):
         return
-    user = user_for_token(session, credentials.credentials)
-    if user is None:
-        raise NotAuthenticated("invalid or revoked API token")
-    if not user.is_admin:
+    if not _user(session, token).is_admin:
         raise Forbidden("only an admin can do this")
 
 

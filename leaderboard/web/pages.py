@@ -23,7 +23,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Coroutine
 from datetime import datetime
-from functools import cache
+from functools import lru_cache
 from pathlib import Path
 from typing import Any
 from urllib.parse import quote
@@ -37,11 +37,11 @@ from markupsafe import Markup
 from leaderboard import auth, queries
 from leaderboard.api.deps import PageDep, SessionDep, SettingsDep
 from leaderboard.errors import NotFound
-from leaderboard.matchmaking import track_pool
+from leaderboard.matchmaking import library_tracks, track_pool
 from leaderboard.models import MU0, SIGMA0
 from leaderboard.web.charts import car_hex, lap_time_svg, rating_history_svg
 from leaderboard.web.trackplots import track_image
-from tracks import list_tracks, load_track
+from tracks import load_track
 from tracks.errors import TrackError
 from tracks.library import RANDOM_PREFIX
 
@@ -102,15 +102,9 @@ def _size(n_bytes: int | None) -> str:
     return f"{n_bytes / (1024 * 1024):.1f} MiB"
 
 
-@cache
-def _library() -> frozenset[str]:
-    """The built-in track names (read once: the library does not change while serving)."""
-    return frozenset(list_tracks())
-
-
 def _track_link(name: str) -> Markup:
     """A link to a track's page (library and generated tracks), else the escaped name."""
-    if name in _library() or name.startswith(RANDOM_PREFIX):
+    if name in library_tracks() or name.startswith(RANDOM_PREFIX):
         return Markup('<a href="/tracks/{0}">{1}</a>').format(quote(name, safe=""), name)
     return Markup("{0}").format(name)
 
@@ -176,16 +170,15 @@ def race_page(
     """One race: results, lap-time chart and the embedded 3D replay."""
     race = queries.race_detail(session, race_id)
     # Embed the player only when the file is really there (a worker may have failed to write it).
-    has_viser = (
-        race.viser_url is not None
-        and (Path(settings.replays_dir) / Path(race.viser_url).name).is_file()
-    )
+    replay_url = None
+    if race.viser_url is not None and (settings.replays_dir / Path(race.viser_url).name).is_file():
+        replay_url = viewer_url(race.viser_url)
     laps = [(e.name, e.lap_times) for e in race.entries]
     context = {
         "nav": "races",
         "race": race,
         "entries": sorted(race.entries, key=lambda e: (e.position is None, e.position, e.car)),
-        "replay_url": viewer_url(race.viser_url) if has_viser and race.viser_url else None,
+        "replay_url": replay_url,
         "raw_replay_url": race.replay_url,
         "laps_svg": lap_time_svg(laps),
         "api_url": f"/api/races/{race_id}",
@@ -216,8 +209,13 @@ def submission_page(
     )
 
 
+@lru_cache(maxsize=256)
 def _track_facts(name: str) -> dict[str, Any]:
-    """Length (m), corner count and a one-line summary of a track, or blanks if unknown."""
+    """Length (m), corner count and a one-line summary of a track, or blanks if unknown.
+
+    Cached (a track's geometry does not change while serving); callers merge it into a new
+    dict and never change it.
+    """
     try:
         track = load_track(name)
     except TrackError:
@@ -249,7 +247,6 @@ def track_page(
         "track": detail.model_dump() | facts,
         "records": detail.records,
         "races": detail.recent_races,
-        "offset": 0,
         "image_url": f"/tracks/{quote(name, safe='')}/plot.png" if facts["length"] else None,
         "api_url": f"/api/tracks/{quote(name, safe='')}",
     }
@@ -259,7 +256,7 @@ def track_page(
 @web_router.get("/tracks/{name}/plot.png")
 def track_plot(request: Request, settings: SettingsDep, name: str) -> Response:
     """The track seen from above (PNG, drawn once and cached in the data folder)."""
-    path = track_image(name, Path(settings.data_dir))
+    path = track_image(name, settings.data_dir)
     return FileResponse(path, media_type="image/png", headers={"cache-control": "max-age=86400"})
 
 

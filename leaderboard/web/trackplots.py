@@ -19,7 +19,8 @@ import os
 import tempfile
 from pathlib import Path
 
-from tracks import list_tracks, load_track
+from leaderboard.matchmaking import library_tracks
+from tracks import load_track
 from tracks.errors import TrackError
 from tracks.library import RANDOM_PREFIX
 
@@ -41,7 +42,7 @@ def track_image(name: str, data_dir: Path) -> Path:
     """
     if name.startswith(RANDOM_PREFIX):
         stem = "random-" + hashlib.sha256(name.encode()).hexdigest()[:16]
-    elif name in list_tracks():
+    elif name in library_tracks():
         stem = name
     else:
         raise TrackError(f"unknown track {name!r}")

@@ -7,6 +7,7 @@ from typing import Annotated
 from fastapi import APIRouter, File, Query, UploadFile, status
 from pydantic import BaseModel
 from sqlalchemy import select
+from sqlalchemy.orm import Session
 
 from leaderboard import queries, uploads
 from leaderboard.api.deps import CurrentUser, PageDep, SessionDep, SettingsDep
@@ -29,7 +30,7 @@ class Uploaded(BaseModel):
     url: str
 
 
-def _uploaded(session: SessionDep, version: SubmissionVersion) -> Uploaded:
+def _uploaded(session: Session, version: SubmissionVersion) -> Uploaded:
     race_id = session.scalar(
         select(RaceEntry.race_id)
         .join(Race, Race.id == RaceEntry.race_id)
