@@ -5,8 +5,11 @@ PY := $(VENV)/bin/python
 PIP := $(VENV)/bin/pip
 STAMP := $(VENV)/.installed-$(shell cat pyproject.toml | md5sum | cut -c1-12)
 ARTIFACTS ?= artifacts
+# STRICT=1: a test that would skip for lack of bubblewrap, PostgreSQL, Chromium or an extra
+# fails instead (CI=true, as .ci/run runs, does the same).
+STRICT ?=
 
-.PHONY: system install lint typecheck test demo bench clean
+.PHONY: system install lint typecheck test demo bench mutate clean
 
 # System packages, installed with apt-get only when missing: bubblewrap (the submission
 # sandbox), chromium (browser tests of the website), postgresql (migration tests).
@@ -28,7 +31,7 @@ $(PY):
 $(STAMP): pyproject.toml | $(PY)
 	$(PIP) install -q --upgrade pip
 	$(PIP) install -q torch==2.13.0
-	$(PIP) install -q -e '.[train,eval,server,dev]'
+	$(PIP) install -q -e '.[train,eval,server,dev,rllib]'
 	rm -f $(VENV)/.installed-* && touch $@
 
 install: system $(STAMP)
@@ -42,7 +45,7 @@ typecheck: install
 
 test: install lint typecheck
 	mkdir -p $(ARTIFACTS)
-	$(VENV)/bin/pytest -n 2 -q --doctest-modules tracks arena agents submissions leaderboard tests
+	SLIPSTREAM_STRICT=$(STRICT) $(VENV)/bin/pytest -n 2 -q --doctest-modules tracks arena agents submissions leaderboard tests
 
 # The main job: a leaderboard seeded with the baselines and the shipped checkpoint, a batch of
 # sandboxed races run by a local worker, served on http://127.0.0.1:8000 (Ctrl-C stops it).
@@ -59,5 +62,12 @@ bench: install
 	$(PY) bench/race_throughput.py
 	$(PY) bench/leaderboard_load.py
 
+# Mutation testing of the critical modules ([tool.mutmut] in pyproject.toml): slow, not part of
+# `make test`. Prints the score per module and every survivor with its verdict.
+mutate: install
+	rm -rf mutants && mkdir -p $(ARTIFACTS)
+	$(VENV)/bin/mutmut run --max-children 2 > $(ARTIFACTS)/mutmut.log 2>&1 || true
+	$(PY) bench/mutation_report.py --json $(ARTIFACTS)/mutation.json
+
 clean:
-	rm -rf $(VENV) $(ARTIFACTS) .pytest_cache .mypy_cache .ruff_cache
+	rm -rf $(VENV) $(ARTIFACTS) mutants .pytest_cache .mypy_cache .ruff_cache

@@ -1,8 +1,11 @@
-"""Baseline drivers: ``random``, ``pursuit`` (pure pursuit) and ``gap`` (follow the gap).
+"""Baseline drivers: ``random``, ``pursuit`` (pure pursuit), ``gap`` (follow the gap) and
+``raceline`` (pure pursuit on a track's race line, with its speed profile).
 
-All three read only the ``"vector"`` observation (and continuous actions), so they can race
+All read only the ``"vector"`` observation (and continuous actions), so they can race
 anywhere a submitted policy can, sandbox included. They need the observation layout
-(:class:`arena.observations.ObservationLayout`) and the car's parameters to decode it.
+(:class:`arena.observations.ObservationLayout`) and the car's parameters to decode it;
+``raceline`` also needs the track (with a :class:`tracks.geometry.Raceline`), on which it
+finds itself from the observation.
 """
 
 from __future__ import annotations
@@ -16,9 +19,12 @@ from agents.policy import PolicyError
 from arena.lidar import DEFAULT_FOV, DEFAULT_RANGE
 from arena.observations import LOOKAHEAD, ObservationLayout
 from arena.sim import GRAVITY, CarParams
+from tracks import Track
+from tracks.geometry import three_point_curvature
 
 FloatArray = NDArray[np.float64]
-BASELINES = ("pursuit", "gap", "random")
+BASELINES = ("pursuit", "gap", "random")  # need only the observation (and the car)
+TRACK_BASELINES = ("raceline",)  # also need the track: make_baseline(..., track=)
 
 
 class RandomPolicy:
@@ -180,17 +186,165 @@ class GapFollowerPolicy:
         return np.array([np.clip(steer / p.max_steer, -1.0, 1.0), throttle], dtype=np.float32)
 
 
+class RacelinePolicy(PursuitPolicy):
+    """Pure pursuit on the track's race line, at the race line's speeds.
+
+    Localisation: the vector observation holds the centre line ahead (points at
+    ``LOOKAHEAD`` m, in the car's frame), the heading error and the lateral offset. For every
+    centre-line point ``s`` of the track (both directions, so reversed races work) the car's
+    pose that those two imply is built and the centre line ahead of it is compared with the
+    observed one; the best match (searched within 3 m of the last one once found) gives the
+    pose. Steering: the look-ahead point ``ld = 0.8 + 0.3 v`` m (1-4 m) along the race line,
+    ``δ = atan(2 L sin α / ld)``. Speed: the race line's speed times ``speed_scale``, capped
+    by the car's top speed and ``sqrt(a_lat / κ)`` of the race line, with a braking pass
+    (``v² ≤ v_next² + 2 a_brake ds``) so it slows before bends; it lifts for a car close ahead
+    like pursuit.
+
+    Args:
+        layout: observation layout of the env it drives in.
+        params: the car's parameters.
+        track: the track, with a race line.
+        speed_scale: multiplies the race line's speed profile.
+
+    Raises:
+        PolicyError: the track has no race line.
+    """
+
+    WINDOW = 3.0  # m of progress searched around the last position
+
+    def __init__(
+        self,
+        layout: ObservationLayout,
+        params: CarParams | None,
+        track: Track,
+        *,
+        name: str = "raceline",
+        speed_scale: float = 1.0,
+        grip: float = 0.75,
+        brake: float = 5.0,
+        max_range: float = DEFAULT_RANGE,
+    ) -> None:
+        super().__init__(layout, params, name=name, grip=grip, brake=brake, max_range=max_range)
+        if track.raceline is None:
+            raise PolicyError(f"track {track.name!r} has no race line for the raceline baseline")
+        self.speed_scale = speed_scale
+        self._views = [self._prepare(track), self._prepare(track.reversed())]
+        self.direction: int | None = None  # index into _views once localised
+        self._k: int | None = None  # last centre-line index
+        self._r: int | None = None  # last race-line index
+
+    def _prepare(self, track: Track) -> dict[str, FloatArray]:
+        """Per-direction tables: centre points ahead (N, L, 2), race line and its speeds."""
+        assert track.raceline is not None
+        ahead_s = (track.s[:, None] + np.asarray(LOOKAHEAD)[None, :]).ravel()
+        ahead = track.to_cartesian(np.column_stack([ahead_s, np.zeros_like(ahead_s)]))
+        pts = track.raceline.points
+        seg = np.linalg.norm(np.roll(pts, -1, axis=0) - pts, axis=1)
+        kappa = np.abs(three_point_curvature(pts))
+        v = np.minimum(track.raceline.speed * self.speed_scale, self.params.top_speed)
+        v = np.minimum(v, np.sqrt(self.a_lat / np.maximum(kappa, 1e-6)))
+        for _ in range(2):  # braking pass round the loop (twice: the seam)
+            for i in range(len(v) - 1, -1, -1):
+                j = (i + 1) % len(v)
+                v[i] = min(v[i], math.sqrt(v[j] ** 2 + 2.0 * self.brake * seg[i]))
+        return {
+            "centre": track.centre,
+            "normals": track.normals,
+            "headings": track.headings,
+            "left": track.width_left,
+            "right": track.width_right,
+            "s": track.s,
+            "length": np.array([track.length]),
+            "ahead": ahead.reshape(track.n_points, -1, 2),
+            "line": pts,
+            "seg": seg,
+            "speed": v,
+        }
+
+    def reset(self, seed: int | None = None) -> None:
+        """Forget where the car was (the next observation is localised from scratch)."""
+        self.direction, self._k, self._r = None, None, None
+
+    def _match(
+        self, view: dict[str, FloatArray], obs: NDArray[np.float32], cand: NDArray[np.int64]
+    ) -> tuple[int, float, FloatArray]:
+        """Best candidate centre-line index, its cost and the pose (3,) it implies."""
+        lay = self.layout
+        ego = obs[lay.ego].astype(np.float64)
+        seen = obs[lay.track_ahead].astype(np.float64).reshape(-1, 2)
+        half = np.where(ego[5] >= 0, view["left"][cand], view["right"][cand])
+        pos = view["centre"][cand] + (ego[5] * half)[:, None] * view["normals"][cand]
+        yaw = view["headings"][cand] + ego[4] * math.pi
+        rel = view["ahead"][cand] - pos[:, None, :]
+        cos, sin = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
+        local = np.stack(
+            [cos * rel[..., 0] + sin * rel[..., 1], cos * rel[..., 1] - sin * rel[..., 0]], -1
+        )
+        cost = np.sum((local / self.max_range - seen) ** 2, axis=(1, 2))
+        best = int(np.argmin(cost))
+        return int(cand[best]), float(cost[best]), np.array([*pos[best], yaw[best]])
+
+    def locate(self, obs: NDArray[np.float32]) -> FloatArray:
+        """The car's pose (3,) [x m, y m, yaw rad] found from one vector observation."""
+        if self.direction is None or self._k is None:
+            found = [self._match(v, obs, np.arange(len(v["s"]))) for v in self._views]
+            self.direction = int(np.argmin([f[1] for f in found]))
+            self._k, _, pose = found[self.direction]
+            return pose
+        view = self._views[self.direction]
+        n = len(view["s"])
+        step = float(view["length"][0]) / n
+        reach = int(self.WINDOW / step) + 1
+        cand = (self._k + np.arange(-reach, reach + 1)) % n
+        self._k, _, pose = self._match(view, obs, cand)
+        return pose
+
+    def act(self, obs: NDArray[np.float32]) -> NDArray[np.float32]:
+        """[steer, throttle] from one vector observation."""
+        p = self.params
+        pose = self.locate(obs)
+        assert self.direction is not None
+        view = self._views[self.direction]
+        line, seg = view["line"], view["seg"]
+        m = len(line)
+        cand = np.arange(m) if self._r is None else (self._r + np.arange(-20, 60)) % m
+        r = int(cand[np.argmin(np.linalg.norm(line[cand] - pose[:2], axis=1))])
+        self._r = r
+        v = float(obs[self.layout.ego][0]) * p.max_speed
+        ld = min(max(0.8 + 0.3 * v, 1.0), 4.0)
+        k, run = r, 0.0
+        while run < ld:
+            run += float(seg[k])
+            k = (k + 1) % m
+        rel = line[k] - pose[:2]
+        c, s_ = math.cos(pose[2]), math.sin(pose[2])
+        x, y = c * rel[0] + s_ * rel[1], c * rel[1] - s_ * rel[0]
+        dist = max(math.hypot(x, y), 1e-3)
+        steer = math.atan(2.0 * p.wheelbase * math.sin(math.atan2(y, x)) / dist)
+        v_target = min(float(view["speed"][r]), self._follow_speed(obs, v))
+        throttle = float(np.clip(2.0 * (v_target - v), -1.0, 1.0))
+        return np.array([np.clip(steer / p.max_steer, -1, 1), throttle], dtype=np.float32)
+
+
 def make_baseline(
     name: str,
     layout: ObservationLayout,
     params: CarParams | None = None,
     seed: int | None = None,
+    track: Track | None = None,
 ) -> RandomPolicy | PursuitPolicy | GapFollowerPolicy:
-    """A baseline policy by name: ``pursuit``, ``gap`` or ``random``."""
+    """A baseline policy by name: ``pursuit``, ``gap``, ``random`` or ``raceline`` (which
+    needs ``track``, with a race line)."""
+    if name == "raceline":
+        if track is None:
+            raise PolicyError("the raceline baseline needs the track (with a race line)")
+        return RacelinePolicy(layout, params, track)
     if name == "pursuit":
         return PursuitPolicy(layout, params)
     if name == "gap":
         return GapFollowerPolicy(layout, params)
     if name == "random":
         return RandomPolicy(seed=seed)
-    raise PolicyError(f"unknown baseline {name!r}; choose from {', '.join(BASELINES)}")
+    raise PolicyError(
+        f"unknown baseline {name!r}; choose from {', '.join(BASELINES + TRACK_BASELINES)}"
+    )

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -22,7 +24,13 @@ def register(sub: Any) -> None:
     )
     p.add_argument("--track", default="oval", help="built-in name, file or random:<seed>")
     p.add_argument(
-        "--agents", default="pursuit,gap", help="comma-separated baselines or checkpoint paths"
+        "--agents",
+        default="pursuit,gap",
+        help="comma-separated baselines (pursuit, gap, random; raceline on a track with a "
+        "race line) or checkpoint paths",
+    )
+    p.add_argument(
+        "--car", default="f1tenth", help="car preset: f1tenth (1/10) or deepracer (1/18)"
     )
     p.add_argument("--laps", type=int, default=2, help="race distance in laps")
     p.add_argument("--seed", type=int, default=0, help="seed for the grid and the policies")
@@ -51,6 +59,13 @@ def register(sub: Any) -> None:
         metavar="FILE",
         help="write the replay log (.replay.json.gz) here",
     )
+    p.add_argument(
+        "--watch",
+        action="store_true",
+        help="show the race live in the browser (a viser server, the site's 3D renderer), "
+        "paced to real time",
+    )
+    p.add_argument("--watch-port", type=int, default=8080, help="port of the --watch server")
     p.add_argument(
         "--trusted",
         action="store_true",
@@ -89,7 +104,12 @@ def race_command(args: argparse.Namespace) -> int:
     names = [a.strip() for a in args.agents.split(",") if a.strip()]
     if not 1 <= len(names) <= 16:
         raise SlipstreamError("--agents takes 1 to 16 comma-separated agents")
-    policies = [load_policy(n, trusted=args.trusted) for n in names]
+    from arena.cars import car_params
+    from tracks import load_track
+
+    params = car_params(args.car)
+    track = load_track(args.track)
+    policies = [load_policy(n, trusted=args.trusted, params=params, track=track) for n in names]
     for i, pol in enumerate(policies):  # same baseline twice: tell them apart in the table
         if names.count(names[i]) > 1:
             pol.name = f"{pol.name}#{i}"
@@ -108,16 +128,18 @@ def race_command(args: argparse.Namespace) -> int:
         def progress(step: int, total: int) -> None:
             bar.update(task, completed=step, total=total)
 
-        result, replay = run_race(
-            policies,
-            track=args.track,
-            laps=args.laps,
-            seed=args.seed,
-            ranked=args.ranked,
-            grid_order="random" if args.grid == "random" else None,
-            progress=progress,
-            record=args.replay is not None,
-        )
+        with _watching(args, policies, console):
+            result, replay = run_race(
+                policies,
+                track=track,
+                laps=args.laps,
+                seed=args.seed,
+                ranked=args.ranked,
+                grid_order="random" if args.grid == "random" else None,
+                progress=progress,
+                record=args.replay is not None or args.watch,
+                env_kwargs={"car": params},
+            )
     console.print(results_table(result.to_dict()))
     if args.replay is not None and replay is not None:
         replay.save(args.replay)
@@ -129,6 +151,30 @@ def race_command(args: argparse.Namespace) -> int:
             result.to_json(args.json)
             console.print(f"results written to {args.json}")
     return 0
+
+
+@contextmanager
+def _watching(args: argparse.Namespace, policies: list[Any], console: Any) -> Iterator[None]:
+    """With ``--watch``: a live viser scene that draws every recorded frame of the race."""
+    if not args.watch:
+        yield
+        return
+    from arena.colours import car_colour
+    from arena.replay import observe
+    from arena.viser_scene import LiveScene, LiveWatcher
+    from tracks import load_track
+
+    cars = [
+        {"agent": f"car_{i}", "name": getattr(p, "name", f"car_{i}"), "colour": car_colour(i)}
+        for i, p in enumerate(policies)
+    ]
+    scene = LiveScene(load_track(args.track), cars, port=args.watch_port, laps=args.laps)
+    console.print(f"watch the race live at {scene.url}")
+    try:
+        with observe(LiveWatcher(scene)):
+            yield
+    finally:
+        scene.close()
 
 
 def export_command(args: argparse.Namespace) -> int:

@@ -72,6 +72,23 @@ def register(sub: Any) -> None:
         metavar="DIR",
         help="where to write <policy>_<track>.json and .png",
     )
+    p.add_argument(
+        "--backend",
+        choices=("pybullet", "batch"),
+        default="pybullet",
+        help="pybullet: race after race; batch: the whole grid, curve and random draws as one "
+        "batch of the batched simulator (seconds), then the worst points re-run on pybullet",
+    )
+    p.add_argument(
+        "--confirm",
+        type=int,
+        default=3,
+        metavar="N",
+        help="with --backend batch: worst grid points re-run on pybullet (0: none)",
+    )
+    p.add_argument(
+        "--device", default="numpy", help="array device of --backend batch (numpy, torch:cpu, cuda)"
+    )
     p.add_argument("--json", type=Path, default=None, metavar="FILE", help="report ('-': stdout)")
     p.add_argument(
         "--trusted",
@@ -91,8 +108,8 @@ def robustness_command(args: argparse.Namespace) -> int:
     from agents.robustness import evaluate_robustness, save_plot, save_report  # noqa: PLC0415 - heavy, imported on use
     from tracks import load_track  # noqa: PLC0415 - heavy, imported on use
 
-    if args.laps < 1 or args.random < 0 or args.nature_steps < 0:
-        raise PolicyError("--laps must be >= 1; --random and --nature-steps >= 0")
+    if args.laps < 1 or args.random < 0 or args.nature_steps < 0 or args.confirm < 0:
+        raise PolicyError("--laps must be >= 1; --random, --nature-steps and --confirm >= 0")
     if any(s < 0 for s in args.scales):
         raise PolicyError("--scales must be >= 0")
     if any(not 0 <= x < 1 for x in args.starts):
@@ -128,6 +145,9 @@ def robustness_command(args: argparse.Namespace) -> int:
             grid=grid,
             starts=args.starts,
             progress=progress,
+            backend=args.backend,
+            confirm=args.confirm,
+            device=args.device,
         )
     stem = f"{Path(args.policy).stem}_{Path(args.track).stem}".replace(":", "_")
     json_path = save_report(report, args.out / f"{stem}.json")
@@ -164,6 +184,9 @@ def summary_table(report: dict[str, Any]) -> Any:
     row(f"grid mean ({grid['n']} points)", grid["mean"])
     row("grid worst-10% mean", grid["worst10_mean"])
     row("grid worst case", grid["worst"])
+    for cell in report.get("confirmed") or []:
+        point = " ".join(f"{k}={v:g}" for k, v in cell["perturbation"].items())
+        row(f"worst point on pybullet ({point}; batch {cell['batch']:.3f})", cell["pybullet"])
     if report["nature"] is not None:
         row(f"vs. trained nature ({report['nature']['steps']} steps)", report["nature"]["score"])
     return table

@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from agents.baselines import BASELINES, make_baseline
+from agents.baselines import BASELINES, TRACK_BASELINES, make_baseline
 from agents.checkpoint import (
     META_MEMBER,
     WEIGHTS_MEMBER,
@@ -39,6 +39,7 @@ from agents.checkpoint import (
 from agents.policy import Policy
 from arena.observations import ObservationLayout
 from arena.sim import CarParams
+from tracks import Track
 
 DEFAULT_LAYOUT = ObservationLayout(64, 3)  # the env's defaults: 64 lidar rays, 3 opponents
 SB3_MEMBERS = ("data", "policy.pth")  # also pytorch_variables.pth, _stable_baselines3_version
@@ -100,6 +101,7 @@ def load_policy(
     layout: ObservationLayout | None = None,
     params: CarParams | None = None,
     trusted: bool = False,
+    track: Track | None = None,
 ) -> Policy:
     """A policy from a baseline name or a file.
 
@@ -110,6 +112,8 @@ def load_policy(
         params: car parameters for the baselines (default: ``CarParams()``).
         trusted: allow files that run code when loaded (SB3 zips, TorchScript). Only for
             your own local files; an :class:`UntrustedCodeWarning` is still emitted.
+        track: the race's track, for baselines that follow it (``raceline`` needs one with
+            a race line).
 
     Returns:
         An object with ``name``, ``reset(seed)`` and ``act(obs)``.
@@ -119,8 +123,8 @@ def load_policy(
             False (one-line message).
         PolicyError: a name that is neither a baseline nor a file.
     """
-    if isinstance(path_or_name, str) and path_or_name in BASELINES:
-        return make_baseline(path_or_name, layout or DEFAULT_LAYOUT, params)
+    if isinstance(path_or_name, str) and path_or_name in BASELINES + TRACK_BASELINES:
+        return make_baseline(path_or_name, layout or DEFAULT_LAYOUT, params, track=track)
     path = Path(path_or_name)
     kind = detect_format(path)
     if kind == "slipstream":

@@ -21,6 +21,12 @@ the starts: one hard corner after the start then decides less of the worst case.
   acting every step inside the default set with a 10 %-per-step rate limit; the policy's
   score against it.
 
+With ``backend="batch"`` every race of the grid, the degradation curve and the random draws
+is one environment of a single :class:`arena.batch.sim.BatchSim` (:func:`run_batch_episodes`:
+108 grid races in a few seconds on a laptop core), and the ``confirm`` worst grid points are
+raced again on pybullet (the reference simulator of ranked races) and reported beside their
+batch scores. The nature attack stays on pybullet.
+
 :func:`rarl_callback` is the training side: every ``nature_every`` racer steps, a nature PPO
 is trained for ``nature_steps`` against a frozen copy of the racer, and the racers then
 race against a frozen copy of that nature (Pinto et al.'s RARL alternation).
@@ -124,6 +130,106 @@ def run_episode(
     )
 
 
+def run_batch_episodes(
+    policy: Policy,
+    track: str,
+    perturbations: Sequence[dict[str, float]],
+    starts: Sequence[float],
+    *,
+    laps: int = 1,
+    seed: int = 0,
+    device: str = "numpy",
+    values: np.ndarray | None = None,
+) -> list[Episode]:
+    """Race ``policy`` solo under many perturbations at once on the batched backend.
+
+    Every pair ``(perturbations[k], starts[k])`` is one environment of one
+    :class:`arena.batch.sim.BatchSim` (B = ``len(perturbations)``, one car each), all
+    stepped together; each is scored as :func:`run_episode` scores a pybullet race (the
+    race distance from the start, or the distance covered in the time limit). A start is
+    rounded to the nearest of the simulator's 64 placements along the lap.
+
+    Args:
+        policy: drives every car (``act_batch(obs (B, d))`` if it has one, else ``act`` per row).
+        track: anything :func:`tracks.load_track` takes.
+        perturbations: (B,) names to values (the rest nominal), as ``reset(options=...)``.
+        starts: (B,) start of each race, fractions of the lap.
+        laps: laps per race.
+        seed: seeds the policy and the simulator's noise.
+        device: array device of the simulator.
+        values: (B, 1, n_params) the perturbations as arrays instead (e.g. random draws);
+            ``perturbations`` then only labels them.
+
+    Returns:
+        One :class:`Episode` per environment, in order.
+    """
+    from arena.batch.parallel import START_POSITIONS  # noqa: PLC0415 - heavy, imported on use
+    from arena.batch.sim import BatchSim  # noqa: PLC0415 - heavy, imported on use
+    from arena.core import DNF_REASONS  # noqa: PLC0415 - heavy, imported on use
+    from arena.uncertainty import Perturbation  # noqa: PLC0415 - heavy, imported on use
+
+    b = len(perturbations)
+    if b == 0 or len(starts) != b:
+        raise PolicyError("one start per perturbation, and at least one race")
+    sim = BatchSim(
+        track, b, 1, laps, device=device, auto_reset=False,
+        start_positions=START_POSITIONS, seed=seed,
+    )  # fmt: skip
+    ops = sim.ops
+    if values is None:
+        values = np.stack([Perturbation.from_mapping(p, 1).values for p in perturbations])
+    sim.set_perturbation(values)
+    k = np.round(np.asarray(starts, dtype=np.float64) * sim.n_starts).astype(np.int64)
+    obs = ops.to_numpy(
+        sim.reset(seed=seed, start=k % sim.n_starts, slot_of_car=np.zeros((b, 1), np.int64))
+    )
+    policy.reset(seed)
+    act_batch = getattr(policy, "act_batch", None)
+    origin = ops.to_numpy(sim.state.race_progress)[:, 0].copy()
+    distance = sim.race_distance
+    covered = np.zeros(b)
+    finished = np.zeros(b, dtype=bool)
+    racing = np.ones(b, dtype=bool)
+    end_step = np.full(b, sim.max_cycles)
+    reason: list[str | None] = [None] * b
+    for t in range(1, sim.max_cycles + 1):
+        rows = obs[:, 0]
+        if act_batch is not None:
+            acts = np.asarray(act_batch(rows), dtype=np.float64)
+        else:
+            acts = np.stack([np.asarray(policy.act(r), dtype=np.float64) for r in rows])
+        res = sim.step(acts.reshape(b, 1, 2))
+        obs = ops.to_numpy(res.obs)
+        progress = ops.to_numpy(sim.state.race_progress)[:, 0]
+        covered = np.where(racing, progress - origin, covered)
+        lapped = ops.to_numpy(res.laps_completed)[:, 0] >= laps
+        done_now = racing & ((covered >= distance) | lapped)
+        finished |= done_now
+        end_step = np.where(done_now, t, end_step)
+        ended = racing & ~done_now & ops.to_numpy(res.terminated | res.truncated)[:, 0]
+        codes = ops.to_numpy(sim.outcome.dnf)[:, 0]  # the env core's DNF reason codes
+        for i in np.flatnonzero(ended).tolist():
+            reason[i] = DNF_REASONS[int(codes[i])]
+        racing &= ~(done_now | ended)
+        if not racing.any():
+            break
+    out = []
+    for i in range(b):
+        time_s = end_step[i] * sim.dt if finished[i] else sim.max_cycles * sim.dt
+        dist = min(float(covered[i]), distance)
+        out.append(
+            Episode(
+                score=max(dist, 0.0) / time_s,
+                finished=bool(finished[i]),
+                distance=round(dist, 3),
+                time=round(float(time_s), 3),
+                dnf_reason=None if finished[i] else reason[i],
+                perturbation=dict(perturbations[i]),
+            )
+        )
+    return out
+
+
 @dataclass
 class GridPoint:
     """One grid point: its perturbation, its score (mean over the starts) and the races."""
@@ -192,6 +298,8 @@ class RobustnessReport:
     nature: dict[str, Any] | None
     degradation: list[dict[str, float]]
     grid_races: list[dict[str, Any]]
+    backend: str = "pybullet"
+    confirmed: list[dict[str, Any]] | None = None  # batch: worst points re-run on pybullet
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-able dict."""
@@ -210,6 +318,9 @@ def evaluate_robustness(
     grid: dict[str, tuple[float, ...]] | None = None,
     starts: Sequence[float] = (0.0,),
     progress: ProgressFn | None = None,
+    backend: str = "pybullet",
+    confirm: int = 3,
+    device: str = "numpy",
 ) -> RobustnessReport:
     """Score ``policy`` nominally, over the grid, on random draws and against a nature.
 
@@ -219,67 +330,83 @@ def evaluate_robustness(
         laps: laps per race.
         seed: seeds the races, the random draws and the nature.
         n_random: random draws of the default set (0: skip).
-        nature_steps: PPO steps to train the nature (0: skip).
+        nature_steps: PPO steps to train the nature (0: skip; always on pybullet).
         scales: bound scales for the degradation curve (0 and 1 are always included).
         grid: parameter values per axis (default :data:`GRID`).
         starts: standing starts, as fractions of the lap (0: the grid); every grid point
             is raced from each and scored by the mean; random draw k starts from
             ``starts[k % len(starts)]``.
         progress: called as ``progress(stage, done, total)``.
+        backend: ``pybullet`` (one race after the other) or ``batch`` (every race of the
+            grid, the degradation curve and the random draws as one batch of
+            :func:`run_batch_episodes`; then the ``confirm`` worst grid points are raced
+            again on pybullet, reported under ``confirmed``).
+        confirm: worst grid points re-run on pybullet with ``backend="batch"``.
+        device: array device of the batch backend.
     """
-    from arena.env import RacingEnv  # noqa: PLC0415 - heavy, imported on use
-    from arena.uncertainty import (  # noqa: PLC0415 - heavy, imported on use
-        UncertaintyConfig,
-        default_config,
-    )
+    from arena.uncertainty import default_config  # noqa: PLC0415 - heavy, imported on use
 
     if not starts:
         raise PolicyError("robustness needs at least one start")
-    fixed = RacingEnv(track=track, n_cars=1, laps=laps, uncertainty=UncertaintyConfig("fixed"))
+    if backend not in ("pybullet", "batch"):
+        raise PolicyError(f"backend must be pybullet or batch, got {backend!r}")
     tell = progress or (lambda stage, done, total: None)
-    cache: dict[tuple[float, ...], GridPoint] = {}
-
-    def race(point: dict[str, float]) -> GridPoint:
-        key = tuple(point.values())
-        if key not in cache:
-            eps = [
-                run_episode(fixed, policy, seed=seed, perturbation=point, start=x) for x in starts
-            ]
-            cache[key] = GridPoint(point, float(np.mean([e.score for e in eps])), eps)
-        return cache[key]
-
-    try:
-        nominal = race(dict(NOMINAL)).score
-        degradation = []
-        curve_scales = sorted(set(scales) | {0.0, 1.0})  # s = 0 is the nominal race
-        points_at = {s: grid_points(s, grid) for s in curve_scales}
-        total = sum(map(len, points_at.values()))
-        done = 0
-        per_scale: dict[float, list[GridPoint]] = {}
-        for s, points in points_at.items():
-            eps: list[GridPoint] = []
-            for point in points:
-                eps.append(race(point))
-                done += 1
-                tell("grid", done, total)
-            per_scale[s] = eps
-            scores = [e.score for e in eps]
-            degradation.append({"scale": s, **summarise(scores, nominal)})
-        grid_eps = per_scale[1.0]
-    finally:
-        fixed.close()
+    curve_scales = sorted(set(scales) | {0.0, 1.0})  # s = 0 is the nominal race
+    points_at = {s: grid_points(s, grid) for s in curve_scales}
+    unique = {tuple(p.values()): p for pts in points_at.values() for p in pts}
+    unique.setdefault(tuple(NOMINAL.values()), dict(NOMINAL))
+    points = list(unique.values())
+    if backend == "batch":
+        cache = _batch_points(policy, track, points, starts, laps, seed, device, tell)
+    else:
+        cache = _pybullet_points(policy, track, points, starts, laps, seed, tell)
+    nominal = cache[tuple(NOMINAL.values())].score
+    degradation = []
+    for s, pts in points_at.items():
+        degradation.append(
+            {"scale": s, **summarise([cache[tuple(p.values())].score for p in pts], nominal)}
+        )
+    grid_eps = [cache[tuple(p.values())] for p in points_at[1.0]]
     random = None
     if n_random > 0:
-        env = RacingEnv(track=track, n_cars=1, laps=laps, uncertainty=default_config("sample"))
-        try:
-            scores = []
-            for k in range(n_random):
-                x = starts[k % len(starts)]
-                scores.append(run_episode(env, policy, seed=seed + 1 + k, start=x).score)
-                tell("random", k + 1, n_random)
-        finally:
-            env.close()
+        cfg = default_config("sample")
+        draws = [starts[k % len(starts)] for k in range(n_random)]
+        if backend == "batch":
+            from arena.uncertainty import sample_values  # noqa: PLC0415 - heavy
+
+            values = sample_values(cfg, np.random.default_rng(seed + 1), (n_random, 1))
+            eps = run_batch_episodes(
+                policy, track, [{}] * n_random, draws, laps=laps, seed=seed + 1,
+                device=device, values=values,
+            )  # fmt: skip
+            scores = [e.score for e in eps]
+            tell("random", n_random, n_random)
+        else:
+            from arena.env import RacingEnv  # noqa: PLC0415 - heavy, imported on use
+
+            env = RacingEnv(track=track, n_cars=1, laps=laps, uncertainty=cfg)
+            try:
+                scores = []
+                for k in range(n_random):
+                    scores.append(run_episode(env, policy, seed=seed + 1 + k, start=draws[k]).score)
+                    tell("random", k + 1, n_random)
+            finally:
+                env.close()
         random = {"n": n_random, **summarise(scores, nominal)}
+    confirmed = None
+    if backend == "batch" and confirm > 0:
+        worst = sorted(grid_eps, key=lambda g: g.score)[:confirm]
+        again = _pybullet_points(
+            policy, track, [g.perturbation for g in worst], starts, laps, seed, tell, "confirm"
+        )
+        confirmed = [
+            {
+                "perturbation": g.perturbation,
+                "batch": g.score,
+                "pybullet": again[tuple(g.perturbation.values())].score,
+            }
+            for g in worst
+        ]
     nature = None
     if nature_steps > 0:
         nature = nature_attack(
@@ -299,7 +426,63 @@ def evaluate_robustness(
         nature=nature,
         degradation=degradation,
         grid_races=[e.to_dict() for e in grid_eps],
+        backend=backend,
+        confirmed=confirmed,
     )
+
+
+def _pybullet_points(
+    policy: Policy,
+    track: str,
+    points: Sequence[dict[str, float]],
+    starts: Sequence[float],
+    laps: int,
+    seed: int,
+    tell: ProgressFn,
+    stage: str = "grid",
+) -> dict[tuple[float, ...], GridPoint]:
+    """Each point raced from each start on pybullet, one race after the other."""
+    from arena.env import RacingEnv  # noqa: PLC0415 - heavy, imported on use
+    from arena.uncertainty import UncertaintyConfig  # noqa: PLC0415 - heavy, imported on use
+
+    env = RacingEnv(track=track, n_cars=1, laps=laps, uncertainty=UncertaintyConfig("fixed"))
+    out: dict[tuple[float, ...], GridPoint] = {}
+    try:
+        for k, point in enumerate(points):
+            eps = [run_episode(env, policy, seed=seed, perturbation=point, start=x) for x in starts]
+            out[tuple(point.values())] = GridPoint(
+                point, float(np.mean([e.score for e in eps])), eps
+            )
+            tell(stage, k + 1, len(points))
+    finally:
+        env.close()
+    return out
+
+
+def _batch_points(
+    policy: Policy,
+    track: str,
+    points: Sequence[dict[str, float]],
+    starts: Sequence[float],
+    laps: int,
+    seed: int,
+    device: str,
+    tell: ProgressFn,
+) -> dict[tuple[float, ...], GridPoint]:
+    """Every point from every start as one batch (:func:`run_batch_episodes`)."""
+    pairs = [(p, x) for p in points for x in starts]
+    eps = run_batch_episodes(
+        policy, track, [p for p, _ in pairs], [x for _, x in pairs], laps=laps, seed=seed,
+        device=device,
+    )  # fmt: skip
+    tell("grid", len(points), len(points))
+    m = len(starts)
+    return {
+        tuple(p.values()): GridPoint(
+            p, float(np.mean([e.score for e in eps[k * m : (k + 1) * m]])), eps[k * m : (k + 1) * m]
+        )
+        for k, p in enumerate(points)
+    }
 
 
 # ---- nature ---------------------------------------------------------------------------------
@@ -433,20 +616,33 @@ def rarl_callback(
 
     from agents.selfplay import SB3Driver, SelfPlayVecEnv  # noqa: PLC0415 - heavy
 
-    nature_env = SelfPlayVecEnv(
-        args.tracks,
-        n_envs=max(1, args.n_envs // 2),
-        n_cars=args.n_cars,
-        n_learners=args.n_learners,
-        laps=args.train_laps,
-        randomise=args.randomise,
-        reward_scale=args.reward_scale,
-        dnf_penalty=args.dnf_penalty,
-        seed=args.seed + 10_000,
-        env_kwargs=env_kwargs,
-        role="nature",
-    )
-    nature_env.pool = racer_env.pool  # the same opponents
+    nature_env: Any
+    if args.backend == "batch":
+        from agents.batch_rarl import BatchNatureVecEnv  # noqa: PLC0415 - heavy
+        from agents.train import _batch_vec_env  # noqa: PLC0415 - heavy
+
+        # The natures of every car of half as many races, on the fixed training tracks.
+        nature_env = BatchNatureVecEnv(
+            _batch_vec_env(
+                args, env_kwargs["uncertainty"], seed=args.seed + 10_000,
+                n_envs=max(1, args.n_envs // 2), procedural=False,
+            )
+        )  # fmt: skip
+    else:
+        nature_env = SelfPlayVecEnv(
+            args.tracks,
+            n_envs=max(1, args.n_envs // 2),
+            n_cars=args.n_cars,
+            n_learners=args.n_learners,
+            laps=args.train_laps,
+            randomise=args.randomise,
+            reward_scale=args.reward_scale,
+            dnf_penalty=args.dnf_penalty,
+            seed=args.seed + 10_000,
+            env_kwargs=env_kwargs,
+            role="nature",
+        )
+        nature_env.pool = racer_env.pool  # the same opponents
     nature = _nature_ppo(nature_env, args.seed, run_dir / "tb_nature")
 
     class Alternate(BaseCallback):
@@ -459,7 +655,11 @@ def rarl_callback(
                 self.next += args.nature_every
                 nature_env.racer = SB3Driver.frozen(self.model.policy, "racer")
                 nature.learn(args.nature_steps, reset_num_timesteps=False, tb_log_name="nature")
-                racer_env.nature = SB3Driver.frozen(nature.policy, "nature")
+                driver = SB3Driver.frozen(nature.policy, "nature")
+                if args.backend == "batch":  # every simulator's natures, one batch each
+                    racer_env.set_attr("nature", driver)
+                else:
+                    racer_env.nature = driver
             return True
 
         def _on_training_end(self) -> None:

@@ -109,7 +109,8 @@ class TrainArgs:
     dnf_penalty: float = 10.0
     """reward subtracted when a learner car retires (stuck, off the track, flipped)"""
     procedural: float = 0.0
-    """share of training episodes on a freshly generated track (domain randomisation)"""
+    """share of training episodes on a freshly generated track (domain randomisation); with
+    --backend batch a share of the race groups, whose generated tracks are redrawn in turn"""
     procedural_length: list[float] = field(default_factory=lambda: [60.0, 160.0])
     """lap length range of generated tracks, m (min max)"""
     procedural_difficulty: list[float] = field(default_factory=lambda: [0.2, 0.8])
@@ -155,7 +156,8 @@ class TrainArgs:
     uncertainty: str = "nominal"
     """model uncertainty in training: nominal, sample (domain randomisation over the default
     robust set of arena.uncertainty) or adversarial (RARL: nature agents pick each car's
-    perturbation at episode start; racer and nature trained in alternation)"""
+    perturbation, every step within a rate limit; racer and nature trained in alternation;
+    with --backend batch the natures of every car of every race act as one batch)"""
     nature_every: int = 20_000
     """adversarial: train the nature for nature_steps after every this many racer steps"""
     nature_steps: int = 10_000
@@ -267,8 +269,6 @@ def _check(args: TrainArgs) -> None:
         raise PolicyError("net_arch needs at least one positive layer size")
     if args.backend not in ("bullet", "batch"):
         raise PolicyError(f"backend must be bullet or batch, got {args.backend!r}")
-    if args.backend == "batch" and (args.procedural > 0 or args.uncertainty != "nominal"):
-        raise PolicyError("--backend batch trains on the given tracks, nominal cars only")
     if args.uncertainty not in ("nominal", "sample", "adversarial"):
         raise PolicyError(f"uncertainty must be nominal, sample or adversarial: {args.uncertainty}")
     if args.init_from is not None and not Path(args.init_from).is_file():
@@ -541,13 +541,31 @@ def machine_description() -> str:
     return f"{os.cpu_count()} CPU cores ({cpu}), {platform.system()} {platform.release()}, {gpu}"
 
 
-def _batch_vec_env(args: TrainArgs) -> Any:
-    """The training env of ``--backend batch``: every car of every race learns (self-play)."""
+def _batch_vec_env(
+    args: TrainArgs,
+    uncertainty: Any = None,
+    *,
+    seed: int | None = None,
+    n_envs: int | None = None,
+    procedural: bool = True,
+) -> Any:
+    """The training env of ``--backend batch``: every car of every race learns (self-play).
+
+    One race group (a :class:`arena.batch.sim.BatchSim` of ``n_envs`` races) per training
+    track, plus ``procedural_groups(args)`` groups on generated tracks (redrawn during
+    training by :func:`procedural_callback`), each also reversed with ``--randomise``;
+    ``uncertainty`` (an :class:`arena.uncertainty.UncertaintyConfig`) goes to every group.
+    """
     from arena.batch.vec_env import BatchVecEnv  # noqa: PLC0415 - heavy, imported on use
 
+    seed = args.seed if seed is None else seed
+    groups = procedural_groups(args) if procedural else 0
+    rng = np.random.default_rng([seed, 7])
+    generated = [_draw_track(args, rng) for _ in range(groups)]
+    fixed = [] if args.procedural >= 1.0 and groups else list(args.tracks)
     return BatchVecEnv(
-        args.tracks,
-        n_envs=args.n_envs,
+        [*fixed, *generated],
+        n_envs=args.n_envs if n_envs is None else n_envs,
         n_cars=args.n_cars,
         laps=args.train_laps,
         device=args.batch_device,
@@ -555,8 +573,104 @@ def _batch_vec_env(args: TrainArgs) -> Any:
         random_starts=args.randomise,
         reward_scale=args.reward_scale,
         dnf_penalty=args.dnf_penalty,
-        seed=args.seed,
+        seed=seed,
+        sim_kwargs=None if uncertainty is None else {"uncertainty": uncertainty},
     )
+
+
+REDRAW_SAMPLES = 8192  # agent-steps of rollouts per redrawn generated track (batch backend)
+
+
+def procedural_groups(args: TrainArgs) -> int:
+    """Race groups on generated tracks for ``--backend batch --procedural P``.
+
+    The batched backend holds one track per group of races (its maps are per track), so the
+    share P is a share of groups: ``G / (G + len(tracks)) ≈ P`` (at least one when P > 0;
+    with P = 1 every group is generated, as many as there are training tracks).
+    """
+    p, n = args.procedural, len(args.tracks)
+    if p <= 0.0:
+        return 0
+    if p >= 1.0:
+        return n
+    return max(1, round(p / (1.0 - p) * n))
+
+
+def _draw_track(args: TrainArgs, rng: np.random.Generator) -> Any:
+    """A generated track with length and difficulty drawn from the ``--procedural-*`` ranges."""
+    from tracks import TrackError  # noqa: PLC0415 - heavy, imported on use
+    from tracks.generator import generate_track  # noqa: PLC0415 - heavy, imported on use
+
+    lo, hi = args.procedural_length
+    d_lo, d_hi = args.procedural_difficulty
+    for _ in range(20):  # a draw with no valid circuit is rare: try the next seed
+        try:
+            return generate_track(
+                int(rng.integers(0, 2**31 - 1)),
+                float(rng.uniform(lo, hi)),
+                float(rng.uniform(d_lo, d_hi)),
+            )
+        except TrackError:
+            continue
+    raise PolicyError("no valid generated track in 20 draws; widen --procedural-length")
+
+
+def procedural_callback(args: TrainArgs, vec_env: Any) -> Any:
+    """Redraws the generated tracks of ``--backend batch --procedural P`` during training.
+
+    At the end of a rollout one generated group (round robin) gets a fresh track: its
+    simulators (and their reversed twins) are rebuilt on it and restarted, and PPO's next
+    rollout starts those slots as new episodes. Building a track's maps takes about half a
+    second, so this happens once per :data:`REDRAW_SAMPLES` agent-steps of rollouts (every
+    rollout when rollouts are at least that big); episodes of one group share its track.
+    """
+    from stable_baselines3.common.callbacks import BaseCallback  # noqa: PLC0415 - heavy
+
+    from arena.batch.sim import BatchSim  # noqa: PLC0415 - heavy, imported on use
+
+    groups = procedural_groups(args)
+    n_views = len(vec_env.sims)
+    n_base = n_views // 2 if args.randomise else n_views
+    first = n_base - groups  # generated groups come after the fixed tracks
+    rng = np.random.default_rng([args.seed, 11])
+
+    class Redraw(BaseCallback):
+        def __init__(self) -> None:
+            super().__init__()
+            self.rollouts = 0
+            self.drawn: list[str] = []
+
+        def _on_step(self) -> bool:
+            return True
+
+        def _on_rollout_end(self) -> None:
+            self.rollouts += 1
+            n_steps = int(getattr(self.model, "n_steps", 1))  # PPO's rollout length per slot
+            every = max(1, math.ceil(REDRAW_SAMPLES / (n_steps * vec_env.num_envs)))
+            if self.rollouts % every:
+                return
+            g = first + len(self.drawn) % groups
+            track = _draw_track(args, rng)
+            self.drawn.append(track.name)
+            views = [(g, track)] + ([(g + n_base, track.reversed())] if args.randomise else [])
+            for k, view in views:
+                old = vec_env.sims[k]
+                new = BatchSim(
+                    view, old.n_envs, old.n_cars, old.laps, device=old.device,
+                    random_starts=old.random_starts, seed=int(rng.integers(0, 2**31 - 1)),
+                    uncertainty=old.uncertainty,
+                )  # fmt: skip
+                new.nature = old.nature
+                vec_env.sims[k] = new
+                lo, hi = int(vec_env._bounds[k]), int(vec_env._bounds[k + 1])
+                obs = new.ops.to_numpy(new.reset()).reshape(hi - lo, -1)
+                # The slots start new episodes: PPO's next rollout begins from these.
+                self.model._last_obs[lo:hi] = obs  # type: ignore[index]
+                self.model._last_episode_starts[lo:hi] = True  # type: ignore[index]
+                vec_env._returns[lo:hi] = 0.0
+                vec_env._lengths[lo:hi] = 0
+
+    return Redraw()
 
 
 def run_name_for(args: TrainArgs) -> str:
@@ -613,7 +727,7 @@ def main(args: TrainArgs) -> dict[str, Any]:
     pool = OpponentPool(mix=mix, max_snapshots=args.max_snapshots)
     vec_env: Any
     if args.backend == "batch":
-        vec_env = _batch_vec_env(args)
+        vec_env = _batch_vec_env(args, train_env_kwargs.get("uncertainty"))
     else:
         vec_env = SelfPlayVecEnv(
             args.tracks,
@@ -705,10 +819,16 @@ def main(args: TrainArgs) -> dict[str, Any]:
         export=export,
     )
     callback: Any = monitor
+    redraw = None
+    if args.backend == "batch" and procedural_groups(args):
+        from stable_baselines3.common.callbacks import CallbackList  # noqa: PLC0415 - heavy
+
+        redraw = procedural_callback(args, vec_env)
+        callback = CallbackList([monitor, redraw])
     if args.uncertainty == "adversarial":
         from agents.robustness import rarl_callback  # noqa: PLC0415 - heavy, imported on use
 
-        callback = rarl_callback(args, vec_env, train_env_kwargs, run_dir, monitor)
+        callback = rarl_callback(args, vec_env, train_env_kwargs, run_dir, callback)
     try:
         try:
             model.learn(total_timesteps=args.total_timesteps, callback=callback, tb_log_name="ppo")
@@ -734,6 +854,11 @@ def main(args: TrainArgs) -> dict[str, Any]:
         "seed": args.seed,
         "command": "slipstream train " + " ".join(_to_argv(args)),
     }
+    if args.backend == "batch" and procedural_groups(args):
+        training["generated_tracks"] = [
+            sim.track.name for sim in vec_env.sims if sim.track.name.startswith("random:")
+        ]
+        training["generated_tracks_drawn"] = len(redraw.drawn) if redraw is not None else 0
     path = export(run_dir / "policy.zip", training)
     # CleanRL: reload what was saved and race it straight away.
     reloaded = load_policy(str(path))

@@ -28,22 +28,27 @@ if TYPE_CHECKING:
     from arena.batch.parallel import BatchParallelEnv
 
 
-BACKENDS = ("bullet", "batch")
+BACKENDS = ("pybullet", "batch")
 
 
 @overload
-def parallel_env(*, backend: Literal["bullet"] = "bullet", **kwargs: Any) -> RacingEnv: ...
+def parallel_env(
+    *, backend: Literal["pybullet", "bullet"] = "pybullet", **kwargs: Any
+) -> RacingEnv: ...
 @overload
 def parallel_env(*, backend: Literal["batch"], **kwargs: Any) -> BatchParallelEnv: ...
-def parallel_env(*, backend: str = "bullet", **kwargs: Any) -> RacingEnv | BatchParallelEnv:
+def parallel_env(*, backend: str = "pybullet", **kwargs: Any) -> RacingEnv | BatchParallelEnv:
     """A PettingZoo ``ParallelEnv``; see :class:`RacingEnv` for the arguments.
 
+    Both backends run the same episode code (:mod:`arena.episode` over :mod:`arena.core`).
+
     Args:
-        backend: ``"bullet"`` (pybullet, the reference for races) or ``"batch"``
-            (:class:`arena.batch.parallel.BatchParallelEnv`, which also takes ``device``).
+        backend: ``"pybullet"`` (the reference for races; ``"bullet"`` is accepted too) or
+            ``"batch"`` (:class:`arena.batch.parallel.BatchParallelEnv`, which also takes
+            ``device``).
         kwargs: the env's arguments.
     """
-    if backend == "bullet":
+    if backend in ("pybullet", "bullet"):
         return RacingEnv(**kwargs)
     if backend == "batch":
         from arena.batch.parallel import BatchParallelEnv  # noqa: PLC0415 - optional backend

@@ -188,7 +188,8 @@ def action_problem(action: Any, space: spaces.Space[Any] | None) -> str | None:
             return f"{arr.tolist()} outside [{space.low.tolist()}, {space.high.tolist()}]"
     elif isinstance(space, spaces.Discrete):
         value = float(arr)
-        if value != round(value) or not space.start <= value < space.start + space.n:
+        first, count = int(space.start), int(space.n)
+        if value != round(value) or not first <= value < first + count:
             return f"{value:g} is not an action of Discrete({space.n})"
     return None
 
@@ -294,7 +295,7 @@ def _race(
         if not env.agents:
             break
         obs, _, term, trunc, infos = env.step(actions)
-        now = env.state.time
+        now = env.sim_state.time
         if replay is not None and recorder is not None:
             recorder.record(now, infos, term, trunc)
             _frame(env, replay, now)
@@ -344,11 +345,11 @@ def _retire(
     env.retire(agent, reason)
     if replay is not None:
         extra = {"detail": detail} if detail else {}
-        replay.add_event(env.state.time, "dnf", agent, reason=reason, **extra)
+        replay.add_event(env.sim_state.time, "dnf", agent, reason=reason, **extra)
 
 
 def _frame(env: RacingEnv, replay: ReplayLog, t: float) -> None:
-    st = env.state
+    st = env.sim_state
     replay.add_frame(t, st.poses, st.steering, st.v_long, env.active)
 
 
@@ -447,6 +448,6 @@ def _result(
         env_version=ENV_VERSION,
         ranked=ranked,
         steps=env.steps,
-        sim_time=round(env.state.time, 4),
+        sim_time=round(env.sim_state.time, 4),
         cars=cars,
     )

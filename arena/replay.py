@@ -7,6 +7,7 @@ A replay is one JSON document (gzip-compressed on disk, ``.replay.json.gz``)::
       "track": {... our track JSON, see tracks.formats ...},
       "dt": 0.05,                                 # seconds between frames
       "cars": [{"agent": "car_0", "name": "pursuit", "colour": [230, 57, 70]}, ...],
+      "laps": 3,                                  # optional: the race's lap count
       "frames": {
         "t": [...],                               # (F,) s
         "poses": [[[x, y, yaw], ...], ...],       # (F, n, 3) m, m, rad; null once a car is out
@@ -25,6 +26,8 @@ from __future__ import annotations
 
 import gzip
 import json
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -40,6 +43,24 @@ REPLAY_FORMAT = "slipstream-replay"
 REPLAY_VERSION = 1
 
 
+FrameObserver = Callable[["ReplayLog"], None]
+_observers: list[FrameObserver] = []
+
+
+@contextmanager
+def observe(callback: FrameObserver) -> Iterator[None]:
+    """Call ``callback(log)`` after every frame any replay log records, while in the block.
+
+    How ``slipstream race --watch`` shows a race live: :func:`arena.race.run_race` records
+    its replay log frame by frame, and the watcher draws each new frame.
+    """
+    _observers.append(callback)
+    try:
+        yield
+    finally:
+        _observers.remove(callback)
+
+
 class ReplayError(SlipstreamError):
     """A replay file is missing, corrupt or of an unknown version."""
 
@@ -52,6 +73,7 @@ class ReplayLog:
     dt: float
     cars: list[dict[str, Any]]
     env_version: str
+    laps: int = 0  # the race's lap count; 0 = not recorded (older logs)
     t: list[float] = field(default_factory=list)
     poses: list[list[list[float] | None]] = field(default_factory=list)
     steering: list[list[float]] = field(default_factory=list)
@@ -76,6 +98,8 @@ class ReplayLog:
         )
         self.steering.append([round(float(v), 4) for v in steering])
         self.speed.append([round(float(v), 3) for v in speed])
+        for callback in _observers:
+            callback(self)
 
     def add_event(self, t: float, kind: str, car: str, **fields: Any) -> None:
         """Record an event at time ``t`` s."""
@@ -100,6 +124,7 @@ class ReplayLog:
             "track": track_to_dict(self.track),
             "dt": self.dt,
             "cars": self.cars,
+            **({"laps": self.laps} if self.laps > 0 else {}),
             "frames": {
                 "t": self.t,
                 "poses": self.poses,
@@ -130,6 +155,7 @@ class ReplayLog:
                 dt=float(data["dt"]),
                 cars=list(data["cars"]),
                 env_version=str(data["env_version"]),
+                laps=int(data.get("laps", 0)),
                 t=list(frames["t"]),
                 poses=list(frames["poses"]),
                 steering=list(frames["steering"]),

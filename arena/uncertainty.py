@@ -393,26 +393,37 @@ class Perturbation:
         return self.values[:, [INDEX[name] for name in REWARD_WEIGHTS]]
 
 
-def sample_values(cfg: UncertaintyConfig, rng: np.random.Generator, n_cars: int) -> FloatArray:
-    """Uniform draws (n_cars, n_params) inside the box, independent per car and parameter.
+def _shape(shape: int | tuple[int, ...]) -> tuple[int, ...]:
+    return (shape,) if isinstance(shape, int) else tuple(shape)
 
-    Latency is uniform over the whole steps ``lo..hi``; the reward noise column is drawn
-    from the truncated Gaussian (:func:`reward_noise`).
+
+def sample_values(
+    cfg: UncertaintyConfig, rng: np.random.Generator, shape: int | tuple[int, ...]
+) -> FloatArray:
+    """Uniform draws ``(*shape, n_params)`` inside the box, independent per car and parameter.
+
+    ``shape`` is ``n_cars`` (one race) or ``(n_envs, n_cars)`` (a batch of races). Latency
+    is uniform over the whole steps ``lo..hi``; the reward noise column is drawn from the
+    truncated Gaussian (:func:`reward_noise`).
     """
+    shape = _shape(shape)
     lo, hi = cfg.lows, cfg.highs
-    values = lo + rng.random((n_cars, len(PARAM_NAMES))) * (hi - lo)
-    values[:, LATENCY] = rng.integers(int(lo[LATENCY]), int(hi[LATENCY]) + 1, size=n_cars)
-    values[:, REWARD_NOISE] = reward_noise(cfg, rng, n_cars)
+    values = lo + rng.random((*shape, len(PARAM_NAMES))) * (hi - lo)
+    values[..., LATENCY] = rng.integers(int(lo[LATENCY]), int(hi[LATENCY]) + 1, size=shape)
+    values[..., REWARD_NOISE] = reward_noise(cfg, rng, shape)
     return values
 
 
-def reward_noise(cfg: UncertaintyConfig, rng: np.random.Generator, n_cars: int) -> FloatArray:
-    """(n_cars,) draws of ``N(0, λ)`` truncated to ``±clip·λ`` (by rejection; zeros if λ=0)."""
+def reward_noise(
+    cfg: UncertaintyConfig, rng: np.random.Generator, shape: int | tuple[int, ...]
+) -> FloatArray:
+    """``shape`` draws of ``N(0, λ)`` truncated to ``±clip·λ`` (by rejection; zeros if λ=0)."""
+    shape = _shape(shape)
     lam = cfg.reward.noise
     if lam == 0.0:
-        return np.zeros(n_cars)
+        return np.zeros(shape)
     bound = cfg.reward.noise_clip * lam
-    out = rng.normal(0.0, lam, n_cars)
+    out = rng.normal(0.0, lam, shape)
     bad = np.abs(out) > bound
     while bad.any():
         out[bad] = rng.normal(0.0, lam, int(bad.sum()))
@@ -430,13 +441,14 @@ def nature_values(
 
     Args:
         cfg: the config (its free parameters are nature's action dimensions).
-        action: (k,) or (n, k) in [-1, 1] (clipped; NaN counts as 0, the midpoint).
-        current: (n, n_params) the values now (kept for the fixed parameters, and the
+        action: (..., k) in [-1, 1] (clipped; NaN counts as 0, the midpoint), e.g. (k,),
+            (n_cars, k) or (n_envs, n_cars, k).
+        current: (..., n_params) the values now (kept for the fixed parameters, and the
             start of a rate-limited move).
         rate: the largest change per call, as a fraction of each interval (None: none).
 
     Returns:
-        (n, n_params): ``lo + (x + 1) / 2 · (hi − lo)`` on the free parameters, moved at
+        (..., n_params): ``lo + (x + 1) / 2 · (hi − lo)`` on the free parameters, moved at
         most ``rate · (hi − lo)`` from ``current``. Latency stays continuous here, so that a
         rate-limited move can accumulate; :func:`applied` rounds it.
     """
@@ -447,23 +459,176 @@ def nature_values(
     out = np.array(current, dtype=np.float64, copy=True)
     if rate is not None:
         step = rate * (hi - lo)
-        target = out[:, free] + np.clip(target - out[:, free], -step, step)
-    out[:, free] = np.clip(target, lo, hi)
+        target = out[..., free] + np.clip(target - out[..., free], -step, step)
+    out[..., free] = np.clip(target, lo, hi)
     return out
 
 
 def applied(values: FloatArray) -> FloatArray:
-    """A copy of ``values`` (n, n_params) with latency rounded to whole control steps."""
+    """A copy of ``values`` (..., n_params) with latency rounded to whole control steps."""
     out = np.array(values, dtype=np.float64, copy=True)
-    out[:, LATENCY] = np.round(out[:, LATENCY])
+    out[..., LATENCY] = np.round(out[..., LATENCY])
     return out
 
 
 def normalised(cfg: UncertaintyConfig, values: FloatArray) -> FloatArray:
-    """(n, k) the free parameters mapped back to [-1, 1] (the inverse of nature's map)."""
+    """(..., k) the free parameters mapped back to [-1, 1] (the inverse of nature's map)."""
     free = cfg.free
     lo, hi = cfg.lows[free], cfg.highs[free]
-    return np.clip(2.0 * (values[:, free] - lo) / (hi - lo) - 1.0, -1.0, 1.0)
+    return np.clip(2.0 * (values[..., free] - lo) / (hi - lo) - 1.0, -1.0, 1.0)
+
+
+def perturbed_reward(
+    values: FloatArray,
+    terms: Mapping[str, FloatArray],
+    reward_mode: str,
+    nominal: FloatArray,
+) -> FloatArray:
+    """Rewards under the reward perturbation: interval weights on the terms plus the noise δ.
+
+    One implementation for both backends (the env core calls it for one race or B races).
+
+    Args:
+        values: (..., n_params) the perturbation, e.g. (n_cars, P) or (n_envs, n_cars, P).
+        terms: each :data:`arena.rewards.RACING_TERMS` term (...) of this step.
+        reward_mode: ``"racing"`` (all five weights), ``"progress"`` (its weight only) or
+            anything else (a DeepRacer reward function: the additive noise only).
+        nominal: (...) the unperturbed reward (used as the base for a reward function).
+
+    Returns:
+        (...) the perturbed rewards (the caller zeroes cars that are out of the race); numpy
+        or torch arrays alike (no conversion).
+    """
+    if reward_mode == "racing":
+        base: Any = 0.0
+        for name in REWARD_WEIGHTS:
+            base = base + values[..., INDEX[name]] * terms[name[2:]]
+    elif reward_mode == "progress":
+        base = values[..., INDEX["w_progress"]] * terms["progress"]
+    else:
+        base = nominal
+    return base + values[..., REWARD_NOISE]
+
+
+class PerturbationState:
+    """The perturbation of every car of ``shape`` races through their episodes (any mode).
+
+    The one implementation of *when* values change, for one race (``shape=(1, n_cars)``) or
+    a batch of races (``(n_envs, n_cars)``): drawn or given at each episode's start
+    (:meth:`start`, for all races or those in a mask), then before every step
+    (:meth:`advance`) re-drawn (``sample``: every step or every k steps, and the reward
+    noise every step) or moved by nature's actions (``adversarial``: at the first step, or
+    every step at most ``nature_rate`` of each interval).
+
+    Attributes:
+        raw: (B, N, n_params) the continuous values (nature's latency is continuous so a
+            rate-limited move can accumulate).
+        values: (B, N, n_params) what acts (:func:`applied`: latency whole steps).
+    """
+
+    def __init__(self, cfg: UncertaintyConfig, shape: tuple[int, int]) -> None:
+        self.cfg = cfg
+        self.shape = shape
+        base = np.clip(nominal_values(), cfg.lows, cfg.highs)
+        self.raw: FloatArray = np.broadcast_to(base, (*shape, len(PARAM_NAMES))).copy()
+        self.values: FloatArray = applied(self.raw)
+
+    def start(
+        self,
+        rng: np.random.Generator,
+        envs: NDArray[np.bool_] | None = None,
+        given: Mapping[str, float | Sequence[float]] | Perturbation | None = None,
+    ) -> None:
+        """New episodes for the races in ``envs`` (B,) (None: all).
+
+        ``sample``: fresh draws; ``fixed``: ``given`` (else the config's ``perturbation``;
+        names to one value or one per car; the rest nominal); ``nominal`` and
+        ``adversarial``: nominal pulled into the box (nature moves it at the first step).
+
+        Raises:
+            UncertaintyError: ``given`` outside ``fixed`` mode, or a bad perturbation.
+        """
+        cfg, (b, n) = self.cfg, self.shape
+        mask = np.ones(b, dtype=bool) if envs is None else np.asarray(envs, dtype=bool)
+        if given is not None and cfg.mode != "fixed":
+            raise UncertaintyError("reset option 'perturbation' needs uncertainty mode 'fixed'")
+        k = int(mask.sum())
+        if k == 0:
+            return
+        if cfg.mode == "sample":
+            fresh = sample_values(cfg, rng, (k, n))
+        elif cfg.mode == "fixed":
+            given = given if given is not None else cfg.perturbation
+            if isinstance(given, Perturbation):
+                given = {name: given.values[:, j].tolist() for j, name in enumerate(PARAM_NAMES)}
+            fresh = np.broadcast_to(
+                Perturbation.from_mapping(given or {}, n).values, (k, n, len(PARAM_NAMES))
+            )
+        else:
+            fresh = np.broadcast_to(
+                np.clip(nominal_values(), cfg.lows, cfg.highs), (k, n, len(PARAM_NAMES))
+            )
+        self.raw[mask] = fresh
+        self.values[mask] = applied(self.raw[mask])
+
+    def advance(
+        self,
+        rng: np.random.Generator,
+        steps: NDArray[np.int64] | int,
+        nature: FloatArray | None = None,
+        acting: NDArray[np.bool_] | None = None,
+    ) -> bool:
+        """Update the values before a control step.
+
+        Args:
+            rng: the env's generator.
+            steps: (B,) or one int: control steps already taken in each race's episode.
+            nature: (B, N, k) nature actions (``adversarial``; None: no nature acted).
+            acting: (B, N) bool: the cars whose nature acted (default all).
+
+        Returns:
+            Whether any dynamics/perception value (not only the reward noise) changed, so
+            the caller knows whether to hand the simulator new values.
+        """
+        cfg = self.cfg
+        t = np.broadcast_to(np.asarray(steps, dtype=np.int64), self.shape[:1])
+        if cfg.mode == "sample":
+            if cfg.resample == "step":
+                redraw = t > 0
+            elif cfg.resample == "every_k":
+                redraw = (t > 0) & (t % cfg.every_k == 0)
+            else:
+                redraw = np.zeros_like(t, dtype=bool)
+            # The reward noise is noise: a new draw every step (drawn for all, so the
+            # stream does not depend on which races redraw).
+            noise = reward_noise(cfg, rng, self.shape)
+            if redraw.any():
+                self.raw[redraw] = sample_values(cfg, rng, (int(redraw.sum()), self.shape[1]))
+            self.raw[~redraw, :, REWARD_NOISE] = noise[~redraw]
+            self.values = applied(self.raw)
+            return bool(redraw.any())
+        if cfg.mode != "adversarial" or nature is None:
+            return False
+        first = t == 0
+        moving = first | (cfg.nature_acts == "step")
+        who = moving[:, None] & (True if acting is None else np.asarray(acting, dtype=bool))
+        if not who.any():
+            return False
+        act = np.asarray(nature, dtype=np.float64)
+        if act.shape != (*self.shape, len(cfg.free)):
+            raise UncertaintyError(
+                f"nature actions must have shape {(*self.shape, len(cfg.free))}, got {act.shape}"
+            )
+        free_move = nature_values(cfg, act, self.raw)
+        limited = (
+            free_move
+            if cfg.nature_rate is None
+            else nature_values(cfg, act, self.raw, cfg.nature_rate)
+        )
+        new = np.where(first[:, None, None], free_move, limited)  # the episode-start choice is free
+        self.raw = np.where(who[..., None], new, self.raw)
+        self.values = applied(self.raw)
+        return True
 
 
 # The default robust set (the reference's suggested ranges; DeepRacer's ≤10 % action noise):

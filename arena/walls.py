@@ -8,6 +8,7 @@ a car sees is what it can hit.
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -19,6 +20,25 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 DEFAULT_RUNOFF = 0.4  # m of run-off between the road edge and the wall
+
+# Track → run-off → (left, right) wall offsets: computing them projects thousands of points.
+_OFFSETS: weakref.WeakKeyDictionary[Track, dict[float, tuple[FloatArray, FloatArray]]] = (
+    weakref.WeakKeyDictionary()
+)
+
+
+def wall_offsets(track: Track, runoff: float) -> tuple[FloatArray, FloatArray]:
+    """Distances (N,) m from the centre line to the left and right walls (cached per track).
+
+    ``width + runoff`` wherever that is clear of the road, shorter where it is not
+    (:meth:`tracks.Track.wall_offsets`); identical to ``width + runoff`` on the built-in tracks.
+    """
+    per_track = _OFFSETS.setdefault(track, {})
+    if runoff not in per_track:
+        per_track[runoff] = track.wall_offsets(runoff)
+    return per_track[runoff]
+
+
 WALL_SPACING = 0.5  # m between wall polyline points (chord error < 2 cm at 1.5 m radius)
 
 
@@ -39,12 +59,17 @@ class Walls:
 
     @classmethod
     def around(cls, track: Track, runoff: float = DEFAULT_RUNOFF) -> Walls:
-        """Walls ``runoff`` m outside both road edges of ``track``."""
+        """Walls ``runoff`` m outside both road edges of ``track`` (less where that is road).
+
+        Where the full run-off would put a wall on another part of the road (the infield of
+        a tight hairpin on an imported track) it is shortened: see :func:`wall_offsets`.
+        """
         stride = max(1, round(WALL_SPACING / float(np.mean(track.segment_lengths))))
         idx = np.arange(0, track.n_points, stride)
         c, n = track.centre[idx], track.normals[idx]
-        left = c + (track.width_left[idx] + runoff)[:, None] * n
-        right = c - (track.width_right[idx] + runoff)[:, None] * n
+        to_left, to_right = wall_offsets(track, runoff)
+        left = c + to_left[idx, None] * n
+        right = c - to_right[idx, None] * n
         return cls(left=left, right=right, stride=stride)
 
     @property

@@ -20,6 +20,7 @@ Usage::
 
     python bench/batch_speed.py [--devices numpy torch:cpu cuda] [--sizes 1 16 ... 16384]
                                 [--cars 4] [--steps 200] [--workers 2] [--json] [--out F]
+                                [--uncertainty sample]
 """
 
 from __future__ import annotations
@@ -76,15 +77,27 @@ def _sync(device: str) -> None:
         torch.cuda.synchronize()
 
 
-def measure(device: str, n_envs: int, n_cars: int, track: str, steps: int, workers: int) -> Row:
-    """Time ``steps`` control steps of ``n_envs`` environments on ``device``."""
+def measure(
+    device: str,
+    n_envs: int,
+    n_cars: int,
+    track: str,
+    steps: int,
+    workers: int,
+    uncertainty: str = "nominal",
+) -> Row:
+    """Time ``steps`` control steps of ``n_envs`` environments on ``device`` (with the
+    default uncertainty set in ``uncertainty`` mode, drawn and applied by the simulator)."""
     from arena.batch.sim import BatchSim
+    from arena.uncertainty import default_config
+
+    cfg = None if uncertainty == "nominal" else default_config(uncertainty)
 
     split = workers if device == "numpy" else 1
     split = max(1, min(split, n_envs))
     sizes = [n_envs // split + (k < n_envs % split) for k in range(split)]
     sims = [
-        BatchSim(track, b, n_cars, device=device, random_starts=True, seed=k)
+        BatchSim(track, b, n_cars, device=device, random_starts=True, seed=k, uncertainty=cfg)
         for k, b in enumerate(sizes)
     ]
     rng = np.random.default_rng(0)
@@ -144,6 +157,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--steps", type=int, default=200, help="steps timed at small B")
     parser.add_argument("--agent-steps", type=int, default=200_000, help="budget per size")
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1)
+    parser.add_argument(
+        "--uncertainty",
+        choices=("nominal", "sample"),
+        default="nominal",
+        help="sample: the default robust set drawn per episode (latency FIFO, noise, reward)",
+    )
     parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
     parser.add_argument("--out", type=Path, default=None, help="also write the JSON here")
     args = parser.parse_args(argv)
@@ -156,7 +175,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     for device in [d for d in args.devices if _available(d)]:
         for b in args.sizes:
             steps = max(3, min(args.steps, args.agent_steps // (b * args.cars)))
-            rows.append(measure(device, b, args.cars, args.track, steps, args.workers))
+            rows.append(
+                measure(device, b, args.cars, args.track, steps, args.workers, args.uncertainty)
+            )
     best_cpu = max(
         (r.agent_steps_per_s for r in rows if not r.device.startswith("cuda")), default=0.0
     )
@@ -178,6 +199,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             "control_hz": 20,
             "physics_hz": 60,
             "workers": args.workers,
+            "uncertainty": args.uncertainty,
         },
         "rows": [asdict(r) for r in rows],
         "skipped_devices": skipped,

@@ -9,7 +9,17 @@ For each car count the script
 3. times ``Simulator.step`` alone on the same world with the same controls (physics,
    Python tyre forces and contact collection, no observations or rewards);
 4. times raw ``pybullet.stepSimulation`` on the same bodies, ``substeps`` calls per control
-   step (no tyre forces: the floor any pybullet env pays).
+   step (no tyre forces: the floor any pybullet env pays);
+5. times raw ``pybullet.stepSimulation`` of the issue's reference world: as many
+   ``racecar.urdf`` models (pybullet_data, racecar_gym's car) as cars on a plane at
+   1/240 s, one call per "step" — ``env/racecar`` is env steps/s over those calls/s (the
+   issue's goal: at least 0.25×; f1tenth_gym reaches 0.19×).
+
+``--clock cpu`` times with this process's CPU time instead of the wall clock: on a machine
+shared with other busy processes the wall clock mostly measures the waiting.
+``--baseline-tree DIR`` also measures the env of another checkout (e.g. the revision before
+a refactor, ``git worktree add /tmp/oldtree HEAD``) in a child process, alternating with
+this tree's runs so that both see the same machine load; the JSON gets both and their ratio.
 
 The ratios show where the time goes: ``env / sim`` is the cost of observations, rewards and
 bookkeeping; ``sim / raw`` that of the tyre model and pybullet calls per car. Everything runs
@@ -20,7 +30,7 @@ The issue's goal: at least 1000 env-steps/s with 4 cars.
 Usage::
 
     python bench/env_speed.py [--track oval] [--cars 2 4 8] [--steps 2000] [--repeats 3]
-                              [--json] [--out FILE] [--profile]
+                              [--json] [--out FILE] [--profile] [--baseline-tree DIR]
 """
 
 from __future__ import annotations
@@ -32,6 +42,7 @@ import json
 import os
 import platform
 import pstats
+import subprocess
 import sys
 import time
 from dataclasses import asdict, dataclass
@@ -50,13 +61,17 @@ THREAD_VARS = (
     "NUMEXPR_NUM_THREADS",
     "VECLIB_MAXIMUM_THREADS",
 )
+# The clock every figure is timed with: wall (perf_counter) or this process's CPU time
+# (process_time: what a loaded, shared machine does to the process barely shows in it).
+CLOCK = [time.perf_counter]
 GOAL_CARS = 4
 GOAL_STEPS_PER_S = 1000.0
 
 
 @dataclass
 class Row:
-    """Figures for one car count (rates are per second of wall-clock time)."""
+    """Figures for one car count (rates per second of wall-clock time, or of this process's
+    CPU time with ``--clock cpu``)."""
 
     n_cars: int
     steps: int  # env steps timed
@@ -68,6 +83,8 @@ class Row:
     raw_substeps_per_s: float  # stepSimulation calls per second
     env_over_sim: float  # env time per step / Simulator.step time per step
     env_over_raw: float  # env time per step / raw pybullet time per control step
+    racecar_steps_per_s: float = 0.0  # stepSimulation/s of n racecar.urdf at 1/240 s
+    env_over_racecar: float = 0.0  # env steps/s over racecar_steps_per_s (goal >= 0.25)
 
 
 def pin_one_core() -> int | None:
@@ -127,7 +144,7 @@ def replay(env: RacingEnv, actions: list[dict[str, NDArray[Any]]], seed: int) ->
     """Seconds spent in ``env.step`` replaying ``actions`` and the agent-steps taken."""
     env.reset(seed=seed)
     elapsed, agent_steps = 0.0, 0
-    clock = time.perf_counter
+    clock = CLOCK[0]
     for act in actions:
         if not env.agents:
             env.reset(seed=seed)
@@ -138,19 +155,26 @@ def replay(env: RacingEnv, actions: list[dict[str, NDArray[Any]]], seed: int) ->
     return elapsed, agent_steps
 
 
+def _poses(env: RacingEnv) -> NDArray[Any]:
+    """The cars' poses (n, 3); env 0.3 keeps them in ``sim_state`` (0.2: ``state``), so the
+    same script can time an older checkout (``--baseline-tree``)."""
+    state = getattr(env, "sim_state", None) or env.state
+    return state.poses.copy()  # type: ignore[union-attr]
+
+
 def time_simulator(env: RacingEnv, actions: list[dict[str, NDArray[Any]]], seed: int) -> float:
     """Seconds of ``Simulator.step`` over the recorded controls, from the same grid."""
     import numpy as np
 
     env.reset(seed=seed)
     sim = env.sim
-    grid = env.state.poses.copy()
+    grid = _poses(env)
     controls = np.zeros((len(actions), env.n_cars, 2))
     for k, act in enumerate(actions):
         for agent, a in act.items():
             controls[k, env.agent_index[agent]] = a
     sim.reset(grid)
-    clock = time.perf_counter
+    clock = CLOCK[0]
     t0 = clock()
     for row in controls:
         sim.step(row[:, 0], row[:, 1])
@@ -163,15 +187,46 @@ def time_raw(env: RacingEnv, steps: int, seed: int) -> float:
 
     env.reset(seed=seed)
     sim = env.sim
-    sim.reset(env.state.poses.copy())
+    sim.reset(_poses(env))
     client, substeps = sim.client, sim.substeps
     step = pb.stepSimulation
-    clock = time.perf_counter
+    clock = CLOCK[0]
     t0 = clock()
     for _ in range(steps):
         for _ in range(substeps):
             step(physicsClientId=client)
     return clock() - t0
+
+
+def time_racecar(n_cars: int, steps: int) -> float:
+    """Seconds of ``steps`` raw ``stepSimulation`` calls on ``n_cars`` racecar.urdf at 1/240 s.
+
+    The issue's reference: racecar_gym's car (pybullet_data's MIT racecar, with its wheel and
+    steering joints) on a plane, nothing else — the floor of a pybullet racing env built on
+    that model.
+    """
+    import pybullet_data
+
+    from arena.sim import pb
+
+    client = pb.connect(pb.DIRECT)
+    try:
+        pb.setAdditionalSearchPath(pybullet_data.getDataPath(), physicsClientId=client)
+        pb.setGravity(0, 0, -9.81, physicsClientId=client)
+        pb.setTimeStep(1.0 / 240.0, physicsClientId=client)
+        pb.loadURDF("plane.urdf", physicsClientId=client)
+        for k in range(n_cars):
+            pb.loadURDF("racecar/racecar.urdf", [0.0, 1.0 * k, 0.2], physicsClientId=client)
+        step = pb.stepSimulation
+        for _ in range(50):  # let the cars settle on their wheels
+            step(physicsClientId=client)
+        clock = CLOCK[0]
+        t0 = clock()
+        for _ in range(steps):
+            step(physicsClientId=client)
+        return clock() - t0
+    finally:
+        pb.disconnect(physicsClientId=client)
 
 
 def measure(track: str, n_cars: int, steps: int, repeats: int, lidar_rays: int, seed: int) -> Row:
@@ -184,6 +239,7 @@ def measure(track: str, n_cars: int, steps: int, repeats: int, lidar_rays: int, 
         agent_steps = env_runs[0][1]
         sim_time = min(time_simulator(env, actions, seed) for _ in range(repeats))
         raw_time = min(time_raw(env, steps, seed) for _ in range(repeats))
+        racecar_time = min(time_racecar(n_cars, steps) for _ in range(repeats))
         substeps = env.sim.substeps
     finally:
         env.close()
@@ -198,6 +254,8 @@ def measure(track: str, n_cars: int, steps: int, repeats: int, lidar_rays: int, 
         raw_substeps_per_s=steps * substeps / raw_time,
         env_over_sim=env_time / sim_time,
         env_over_raw=env_time / raw_time,
+        racecar_steps_per_s=steps / racecar_time,
+        env_over_racecar=racecar_time / env_time,
     )
 
 
@@ -238,6 +296,7 @@ def print_table(rows: list[Row], meta: dict[str, Any]) -> None:
         "raw pybullet/s",
         "env/sim",
         "env/raw",
+        "env/racecar",
     ):
         table.add_column(name, justify="right")
     for r in rows:
@@ -249,14 +308,24 @@ def print_table(rows: list[Row], meta: dict[str, Any]) -> None:
             f"{r.raw_steps_per_s:,.0f}",
             f"{r.env_over_sim:.2f}×",
             f"{r.env_over_raw:.2f}×",
+            f"{r.env_over_racecar:.2f}×",
         )
     console = Console(width=max(Console().width, 100))
     console.print(table)
     substeps = meta["physics_hz"] // meta["control_hz"]
     console.print(
         f"raw pybullet/s: control steps per second of stepSimulation alone ({substeps} calls "
-        "each); env/sim and env/raw: time per env step over theirs."
+        "each); env/sim and env/raw: time per env step over theirs; env/racecar: env steps/s "
+        "over stepSimulation/s of as many racecar.urdf at 1/240 s (goal ≥ 0.25×)."
     )
+    if meta.get("baseline"):
+        for b in meta["baseline"]["results"]:
+            console.print(
+                f"{b['n_cars']} cars: {b['env_steps_per_s']:,.0f} env-steps/s here vs "
+                f"{b['baseline_env_steps_per_s']:,.0f} in {meta['baseline']['tree']} "
+                f"(×{b['speedup']:.2f}, same run)"
+            )
+    console.print(f"load average: {', '.join(f'{x:.2f}' for x in meta['load_average'])}")
     goal = meta["goal"]
     if goal["measured"] is None:
         console.print(f"goal: {goal['n_cars']} cars not measured")
@@ -268,8 +337,37 @@ def print_table(rows: list[Row], meta: dict[str, Any]) -> None:
         )
 
 
+def measure_tree(tree: Path, args: argparse.Namespace, n_cars: int) -> dict[str, Any]:
+    """One run (one repeat) for ``n_cars`` of this script on ``tree``'s packages, in a child
+    (the same timing code on both sides)."""
+    cmd = [
+        sys.executable,
+        str(Path(__file__).resolve()),  # this script, that tree's packages (PYTHONPATH)
+        "--track",
+        args.track,
+        "--cars",
+        str(n_cars),
+        "--steps",
+        str(args.steps),
+        "--repeats",
+        "1",
+        "--lidar-rays",
+        str(args.lidar_rays),
+        "--seed",
+        str(args.seed),
+        "--clock",
+        args.clock,
+        "--json",
+    ]
+    env = {**os.environ, "PYTHONPATH": str(tree)}
+    done = subprocess.run(cmd, env=env, cwd=tree, capture_output=True, text=True, check=True)
+    row: dict[str, Any] = json.loads(done.stdout)["results"][0]
+    return row
+
+
 def run(args: argparse.Namespace) -> dict[str, Any]:
     """Measure every car count and return the JSON document."""
+    CLOCK[0] = time.process_time if args.clock == "cpu" else time.perf_counter
     core = pin_one_core()
     import numpy as np
 
@@ -279,10 +377,31 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     probe = parallel_env(track=args.track, n_cars=1)
     control_hz, physics_hz = probe.control_hz, probe.sim.physics_hz
     probe.close()
-    rows = [
-        measure(args.track, n, args.steps, args.repeats, args.lidar_rays, args.seed)
-        for n in args.cars
-    ]
+    baseline: dict[str, Any] | None = None
+    if args.baseline_tree is None:
+        rows = [
+            measure(args.track, n, args.steps, args.repeats, args.lidar_rays, args.seed)
+            for n in args.cars
+        ]
+    else:
+        rows, baseline = [], {"tree": str(args.baseline_tree), "results": []}
+        for n in args.cars:
+            ours, theirs = [], []
+            for _ in range(args.repeats):  # alternate, so both see the same machine load
+                ours.append(measure(args.track, n, args.steps, 1, args.lidar_rays, args.seed))
+                theirs.append(measure_tree(args.baseline_tree, args, n))
+            best = max(ours, key=lambda r: r.env_steps_per_s)
+            old = max(theirs, key=lambda r: r["env_steps_per_s"])
+            rows.append(best)
+            baseline["results"].append(
+                {
+                    "n_cars": n,
+                    "baseline_env_steps_per_s": old["env_steps_per_s"],
+                    "baseline_env_over_raw": old["env_over_raw"],
+                    "env_steps_per_s": best.env_steps_per_s,
+                    "speedup": best.env_steps_per_s / old["env_steps_per_s"],
+                }
+            )
     at_goal = next((r for r in rows if r.n_cars == GOAL_CARS), None)
     return {
         "benchmark": "env_speed",
@@ -303,7 +422,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             "pybullet_api": pb.getAPIVersion(),
             "cpus": os.cpu_count(),
         },
+        "clock": args.clock,
+        "load_average": list(os.getloadavg()),
         "results": [asdict(r) for r in rows],
+        "baseline": baseline,
         "goal": {
             "n_cars": GOAL_CARS,
             "env_steps_per_s": GOAL_STEPS_PER_S,
@@ -326,6 +448,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0, help="env seed")
     parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
     parser.add_argument("--out", type=Path, default=None, help="also write the JSON here")
+    parser.add_argument(
+        "--clock",
+        choices=["wall", "cpu"],
+        default="wall",
+        help="time with the wall clock or this process's CPU time (for a loaded machine)",
+    )
+    parser.add_argument(
+        "--baseline-tree",
+        type=Path,
+        default=None,
+        help="another checkout whose env to measure in the same run (alternating)",
+    )
     parser.add_argument(
         "--profile",
         action="store_true",

@@ -4,18 +4,23 @@
    same pursuit policy answers them in-process (``policy.act``) and from a sandbox (a python
    bundle that wraps the baseline, :class:`submissions.remote.SandboxedPolicy`), and a
    sandboxed policy that only returns zeros gives the round trip alone (pipes, frames,
-   checks). The figure is a ratio from one run: sandboxed / in-process time per step.
-2. **Races per minute.** One-lap races with four sandboxed pursuit cars (each race starts
-   four sandboxes, loads the policies, races, kills them), against the same race with four
-   in-process pursuit cars. On this machine's 2 cores the four workers share them with the
-   simulator.
+   checks). The figure is a ratio from one run: sandboxed / in-process time per step. On a
+   shared, loaded machine the three are timed interleaved, in ``--blocks`` blocks each (one
+   block of each in turn), and each figure is the median of its blocks' means, so a burst
+   of load elsewhere hits all three alike.
+2. **Races per minute.** One-lap races with four sandboxed pursuit cars, against the same
+   race with four in-process pursuit cars, two ways: ``fresh`` (each race starts four
+   sandboxes, loads the policies, races, kills them) and ``pooled`` (the races of the run
+   are one batch: :class:`submissions.remote.SandboxPool` keeps the four sandboxes between
+   races, as :func:`submissions.jobs.run_race_jobs` does). On a 2-core machine the four
+   workers share the cores with the simulator.
 
 Each figure is per sandbox mode (``--modes bwrap seccomp``; a mode that cannot run here is
 skipped). Nothing is pinned: the sandboxed worker is a second process by design.
 
 Usage::
 
-    python bench/sandbox_overhead.py [--track oval] [--steps 1000] [--races 3]
+    python bench/sandbox_overhead.py [--track oval] [--steps 1000] [--blocks 10] [--races 3]
                                      [--modes bwrap seccomp] [--json] [--out FILE]
 """
 
@@ -91,28 +96,41 @@ def record_observations(track: str, steps: int) -> list[Any]:
 
 
 def time_per_step(policy: Any, observations: list[Any]) -> float:
-    """Mean seconds per ``act`` over ``observations`` (after a reset and 20 warm-up steps)."""
-    policy.reset(0)
-    for obs in observations[:20]:
-        policy.act(obs)
+    """Mean seconds per ``act`` over ``observations``."""
     start = time.perf_counter()
     for obs in observations:
         policy.act(obs)
     return (time.perf_counter() - start) / len(observations)
 
 
-def per_step(folder: Path, track: str, steps: int, limits: Any) -> dict[str, float]:
-    """In-process, sandboxed and round-trip-only seconds per step, and the ratio."""
+def per_step(
+    folder: Path, track: str, steps: int, limits: Any, blocks: int = 10
+) -> dict[str, float]:
+    """In-process, sandboxed and round-trip-only seconds per step (medians of interleaved
+    blocks, after a reset and 20 warm-up steps each), and the ratio."""
+    import statistics
+
     from agents.baselines import make_baseline
     from agents.loading import DEFAULT_LAYOUT
     from submissions.remote import SandboxedPolicy
 
     observations = record_observations(track, steps)
-    in_process = time_per_step(make_baseline("pursuit", DEFAULT_LAYOUT), observations)
-    with SandboxedPolicy(_bundle(folder, "pursuit_boxed", PURSUIT_SOURCE), limits) as boxed:
-        sandboxed = time_per_step(boxed, observations)
-    with SandboxedPolicy(_bundle(folder, "zeros_boxed", ZERO_SOURCE), limits) as zeros:
-        round_trip = time_per_step(zeros, observations)
+    chunk = max(1, len(observations) // blocks)
+    parts = [observations[i : i + chunk] for i in range(0, len(observations), chunk)]
+    with (
+        SandboxedPolicy(_bundle(folder, "pursuit_boxed", PURSUIT_SOURCE), limits) as boxed,
+        SandboxedPolicy(_bundle(folder, "zeros_boxed", ZERO_SOURCE), limits) as zeros,
+    ):
+        policies = [make_baseline("pursuit", DEFAULT_LAYOUT), boxed, zeros]
+        times: list[list[float]] = [[], [], []]
+        for policy in policies:
+            policy.reset(0)
+            for obs in observations[:20]:
+                policy.act(obs)
+        for part in parts:
+            for policy, out in zip(policies, times, strict=True):
+                out.append(time_per_step(policy, part))
+    in_process, sandboxed, round_trip = (statistics.median(t) for t in times)
     return {
         "in_process_us": in_process * 1e6,
         "sandboxed_us": sandboxed * 1e6,
@@ -123,11 +141,18 @@ def per_step(folder: Path, track: str, steps: int, limits: Any) -> dict[str, flo
 
 
 def races_per_minute(folder: Path, track: str, races: int, limits: Any) -> dict[str, float]:
-    """One-lap races with 4 sandboxed pursuit cars vs 4 in-process ones, per minute."""
+    """One-lap races with 4 sandboxed pursuit cars (fresh, pooled) vs 4 in-process ones."""
     from agents.baselines import make_baseline
     from agents.loading import DEFAULT_LAYOUT
     from arena.race import run_race
     from submissions.remote import SandboxedPolicy
+
+    try:
+        from submissions import remote
+
+        pool_class: Any = remote.SandboxPool
+    except AttributeError:  # an older checkout, measured for comparison: no pooled figure
+        pool_class = None
 
     bundle = _bundle(folder, "pursuit_race", PURSUIT_SOURCE)
     start = time.perf_counter()
@@ -143,24 +168,42 @@ def races_per_minute(folder: Path, track: str, races: int, limits: Any) -> dict[
         result, _ = run_race(cars, track=track, seed=seed)
         statuses += [c.status for c in result.cars]
     sandboxed = time.perf_counter() - start
+    pooled = float("nan")
+    if pool_class is not None:
+        start = time.perf_counter()
+        with pool_class() as pool:
+            for seed in range(races):
+                cars = [pool.policy(bundle, limits) for _ in range(4)]
+                result, _ = run_race(cars, track=track, seed=seed)
+                statuses += [c.status for c in result.cars]
+        pooled = time.perf_counter() - start
     return {
         "races": races,
         "in_process_races_per_min": 60 * races / in_process,
         "sandboxed_races_per_min": 60 * races / sandboxed,
+        "pooled_races_per_min": 60 * races / pooled,
         "sandboxed_s_per_race": sandboxed / races,
+        "fresh_ratio": in_process / sandboxed,
+        "pooled_ratio": in_process / pooled,
         "finished_fraction": statuses.count("finished") / len(statuses),
     }
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
     """Measure each mode; the JSON document."""
+    from submissions import sandbox
     from submissions.errors import SandboxError
     from submissions.sandbox import SandboxLimits, sandbox_mode
 
+    weak_env = getattr(sandbox, "WEAK_ENV", "SLIPSTREAM_ALLOW_WEAK_SANDBOX")  # older checkouts
+
     limits = SandboxLimits(step_deadline_s=1.0, overage_s=60.0)  # measure, never time out
     results: dict[str, Any] = {}
+    load_before = os.getloadavg()
     for mode in args.modes:
         os.environ["SANDBOX"] = mode
+        if mode == "seccomp":  # measuring the fallback is the operator's explicit choice
+            os.environ[weak_env] = "1"
         try:
             sandbox_mode()
         except SandboxError as err:
@@ -169,7 +212,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         with tempfile.TemporaryDirectory(prefix="slipstream-bench-") as tmp:
             folder = Path(tmp)
             results[mode] = {
-                "per_step": per_step(folder, args.track, args.steps, limits),
+                "per_step": per_step(folder, args.track, args.steps, limits, args.blocks),
                 "races": races_per_minute(folder, args.track, args.races, limits),
             }
     return {
@@ -180,6 +223,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             "platform": platform.platform(),
             "python": platform.python_version(),
             "cpus": os.cpu_count(),
+            "load_average_before": load_before,
             "load_average": os.getloadavg(),
         },
         "modes": results,
@@ -196,7 +240,14 @@ def print_table(doc: dict[str, Any]) -> None:
     races = Table(title="One-lap races with 4 pursuit cars")
     for name in ("mode", "in-process µs", "sandboxed µs", "round trip µs", "ratio"):
         steps.add_column(name, justify="right")
-    for name in ("mode", "in-process races/min", "sandboxed races/min", "s/race", "finished"):
+    for name in (
+        "mode",
+        "in-process races/min",
+        "fresh sandboxes races/min",
+        "pooled sandboxes races/min",
+        "pooled / in-process",
+        "finished",
+    ):
         races.add_column(name, justify="right")
     for mode, res in doc["modes"].items():
         if "skipped" in res:
@@ -214,12 +265,17 @@ def print_table(doc: dict[str, Any]) -> None:
             mode,
             f"{r['in_process_races_per_min']:.1f}",
             f"{r['sandboxed_races_per_min']:.1f}",
-            f"{r['sandboxed_s_per_race']:.2f}",
+            f"{r['pooled_races_per_min']:.1f}",
+            f"{r['pooled_ratio']:.2f}×",
             f"{r['finished_fraction']:.0%}",
         )
     console.print(steps)
     console.print(races)
-    console.print(f"load average during the run: {doc['machine']['load_average']}")
+    machine = doc["machine"]
+    console.print(
+        f"load average (1, 5, 15 min) before: {machine['load_average_before']}, "
+        f"after: {machine['load_average']}"
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -230,6 +286,7 @@ def main(argv: list[str] | None = None) -> int:
         "--steps", type=int, default=1000, help="observations timed per step figure"
     )
     parser.add_argument("--races", type=int, default=3, help="races per races-per-minute figure")
+    parser.add_argument("--blocks", type=int, default=10, help="interleaved blocks per step figure")
     parser.add_argument(
         "--modes", nargs="+", default=["bwrap", "seccomp"], choices=["bwrap", "seccomp"]
     )

@@ -51,17 +51,28 @@ def create_user(session: Session, *, name: str, is_admin: bool = False) -> tuple
 
 def issue_token(session: Session, *, user: User, label: str = "") -> str:
     """A new API token for ``user``; returns the token (only its hash is stored)."""
+    return create_token(session, user=user, label=label)[1]
+
+
+def create_token(session: Session, *, user: User, label: str = "") -> tuple[ApiToken, str]:
+    """A new API token for ``user``: its stored row (id, label, ...) and the token itself."""
     token = new_token()
-    session.add(
-        ApiToken(
-            user_id=user.id,
-            token_hash=hash_token(token),
-            prefix=token[: len(TOKEN_PREFIX) + 6],
-            label=label[:64],
-        )
+    row = ApiToken(
+        user_id=user.id,
+        token_hash=hash_token(token),
+        prefix=token[: len(TOKEN_PREFIX) + 6],
+        label=label[:64],
     )
+    session.add(row)
     session.flush()
-    return token
+    return row, token
+
+
+def list_tokens(session: Session, *, user: User) -> list[ApiToken]:
+    """``user``'s tokens, revoked ones included, oldest first."""
+    return list(
+        session.scalars(select(ApiToken).where(ApiToken.user_id == user.id).order_by(ApiToken.id))
+    )
 
 
 def user_for_token(session: Session, token: str) -> User | None:

@@ -24,8 +24,10 @@ COMMAND_MODULES = (
     "agents.cli_train",
     "agents.cli_robustness",
     "submissions.cli",
+    "submissions.cli_bundle",
     "leaderboard.demo",
     "leaderboard.cli_server",
+    "leaderboard.cli_participant",
 )
 
 

@@ -14,8 +14,11 @@ from __future__ import annotations
 import argparse
 import io
 import json
+import math
 import os
+import signal
 import sys
+import tempfile
 import zipfile
 from pathlib import Path
 from typing import Any
@@ -63,12 +66,22 @@ def register(sub: Any) -> None:
         "--no-schedule", action="store_true", help="only run queued races; schedule none"
     )
     w.add_argument("--lease-s", type=float, default=None, help="lease length, s")
+    w.add_argument(
+        "--allow-weak-sandbox",
+        action="store_true",
+        help="where bubblewrap cannot run, race bundles in the weaker seccomp fallback "
+        "(logged and recorded on every result) instead of refusing to start",
+    )
     w.add_argument("--json", action="store_true", help="print the summary as JSON")
     w.set_defaults(handler=worker_command)
 
     s = sub.add_parser("submit", help="upload a submission bundle to a leaderboard server")
     s.add_argument("bundle", type=Path, help="bundle zip, or a folder with manifest.json")
-    s.add_argument("--server", default="http://127.0.0.1:8000", help="leaderboard URL")
+    s.add_argument(
+        "--server",
+        default=os.environ.get("SLIPSTREAM_SERVER", "http://127.0.0.1:8000"),
+        help="leaderboard URL ($SLIPSTREAM_SERVER)",
+    )
     s.add_argument(
         "--token", default=os.environ.get("SLIPSTREAM_TOKEN"), help="API token ($SLIPSTREAM_TOKEN)"
     )
@@ -93,9 +106,24 @@ def serve_command(args: argparse.Namespace) -> int:
     from leaderboard.app import create_app  # noqa: PLC0415 - keeps `slipstream --help` fast
 
     settings = settings_from(args)
+    if args.host not in (*settings.allowed_hosts, "0.0.0.0", "::", "*"):
+        settings.allowed_hosts.append(args.host)  # the address served is a name it answers to
+    elif args.host in ("0.0.0.0", "::") and "*" not in settings.allowed_hosts:
+        print(
+            f"answering only Host: {', '.join(settings.allowed_hosts)} "
+            "(set SLIPSTREAM_ALLOWED_HOSTS to the names clients use)",
+            file=sys.stderr,
+        )
     app = create_app(settings)
     print(f"leaderboard on http://{args.host}:{args.port}/ (API docs at /docs)", file=sys.stderr)
-    uvicorn.run(app, host=args.host, port=args.port, log_level="warning")
+    uvicorn.run(
+        app,
+        host=args.host,
+        port=args.port,
+        log_level="warning",
+        timeout_keep_alive=math.ceil(settings.keep_alive_s),  # idle connections closed
+        limit_concurrency=settings.max_connections,  # 503 beyond, instead of exhausting FDs
+    )
     return 0
 
 
@@ -113,7 +141,17 @@ def worker_command(args: argparse.Namespace) -> int:
         workers=args.workers,
         ray_address=args.ray_address,
         schedule=not args.no_schedule,
+        allow_weak_sandbox=args.allow_weak_sandbox,
     )
+
+    def hand_back(signum: int, frame: object) -> None:
+        # First SIGTERM / Ctrl-C: hand the running races back (no attempt spent) and exit.
+        console.print("[bold]worker[/] stopping: handing the running races back")
+        signal.signal(signum, signal.default_int_handler)  # a second one interrupts hard
+        worker.request_stop()
+
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(signum, hand_back)
 
     with console.status("[bold]worker[/] waiting for races") as status:
 
@@ -127,7 +165,13 @@ def worker_command(args: argparse.Namespace) -> int:
             stats = worker.run(max_races=args.max_races, once=args.once, progress=progress)
         finally:
             worker.close()
-    summary = {"completed": stats.completed, "failed": stats.failed, "discarded": stats.discarded}
+    summary = {
+        "completed": stats.completed,
+        "failed": stats.failed,
+        "discarded": stats.discarded,
+        "handed_back": stats.handed_back,
+        "stalled": stats.stalled,
+    }
     if args.json:
         print(json.dumps(summary))
     else:
@@ -163,16 +207,22 @@ def submit_command(args: argparse.Namespace) -> int:
     url = f"{server}/api/submissions"
     if args.submission is not None:
         url += f"/{args.submission}/versions"
-    name = args.bundle.name if args.bundle.is_file() else f"{args.bundle.name}.zip"
-    try:
-        response = httpx.post(
-            url,
-            headers={"Authorization": f"Bearer {args.token}"},
-            files={"file": (name, bundle_bytes(args.bundle), "application/zip")},
-            timeout=120,
-        )
-    except httpx.HTTPError as err:
-        raise LeaderboardError(f"cannot reach {server}: {err}") from None
+    from submissions.cli_bundle import bundle_for_upload  # noqa: PLC0415 - wraps checkpoints
+
+    with tempfile.TemporaryDirectory(prefix="slipstream-submit-") as tmp:
+        bundle, note = bundle_for_upload(args.bundle, Path(tmp))
+        if note:
+            print(note, file=sys.stderr)
+        name = bundle.name if bundle.is_file() else f"{bundle.name}.zip"
+        try:
+            response = httpx.post(
+                url,
+                headers={"Authorization": f"Bearer {args.token}"},
+                files={"file": (name, bundle_bytes(bundle), "application/zip")},
+                timeout=120,
+            )
+        except httpx.HTTPError as err:
+            raise LeaderboardError(f"cannot reach {server}: {err}") from None
     try:
         body = response.json()
     except ValueError:

@@ -47,3 +47,13 @@ class InvalidBundle(LeaderboardError):
     """An upload that is not a valid submission bundle (the validator's message)."""
 
     status_code = 422
+
+
+class QuotaExceeded(LeaderboardError):
+    """A per-user quota is spent (``retry_after``: seconds until it frees, for ``Retry-After``)."""
+
+    status_code = 429
+
+    def __init__(self, message: str, *, retry_after: int = 60) -> None:
+        super().__init__(message)
+        self.retry_after = retry_after

@@ -1,8 +1,12 @@
 """Matchmaking: which submissions race, where, and when (after Kaggle and Halite III).
 
-* A new version first gets a **validation race** (unrated, queued ahead of everything): one
-  lap on ``settings.validation_track`` against the ``settings.validation_opponent`` baseline.
-  It must drive without a policy failure (crash, invalid action, deadline) to enter the pool.
+* A new version first gets a **validation race** (unrated): one lap on
+  ``settings.validation_track`` against the ``settings.validation_opponent`` baseline. It must
+  drive without a policy failure (crash, invalid action, deadline) to enter the pool.
+  Validation is **fair-queued per user**: a user's first waiting validation race goes ahead of
+  the ranked races (priority 0: quick feedback); while it waits, their further ones queue with
+  the ranked races, in arrival order (priority 10). One user's burst of uploads therefore puts
+  at most one race ahead of everyone else's, and another user's upload still jumps the queue.
 * **Ranked races** then draw from the active submissions. The *seed* submission is drawn
   with weight (σ/σ₀)² / (1 + races + 2·queued): under-played and uncertain submissions race
   most, and one with races already queued waits its turn. Its opponents are drawn from the
@@ -52,10 +56,35 @@ class Candidate:
         return (self.sigma / SIGMA0) ** 2 / (1 + self.races + 2 * self.queued)
 
 
+def waiting_validations(session: Session, user_id: int) -> int:
+    """A user's validation races that are queued or running."""
+    return int(
+        session.scalar(
+            select(func.count(func.distinct(Race.id)))
+            .join(RaceEntry, RaceEntry.race_id == Race.id)
+            .join(Submission, Submission.id == RaceEntry.submission_id)
+            .where(
+                Race.kind == "validation",
+                Race.status.in_(("queued", "running")),
+                Submission.user_id == user_id,
+            )
+        )
+        or 0
+    )
+
+
+def validation_priority(session: Session, user_id: int | None) -> int:
+    """Queue priority of a user's next validation race (see the module docstring)."""
+    if user_id is None or waiting_validations(session, user_id) == 0:
+        return VALIDATION_PRIORITY
+    return RANKED_PRIORITY
+
+
 def schedule_validation(session: Session, settings: Settings, version: SubmissionVersion) -> Race:
-    """Queue the validation race of a new version (one lap against a baseline)."""
+    """Queue the validation race of a new version (one lap against a baseline), fair-queued."""
     sub = session.get(Submission, version.submission_id)
     name = sub.name if sub is not None else f"submission-{version.submission_id}"
+    priority = validation_priority(session, sub.user_id if sub is not None else None)
     race = Race(
         kind="validation",
         track=settings.validation_track,
@@ -78,7 +107,7 @@ def schedule_validation(session: Session, settings: Settings, version: Submissio
         ],
     )
     session.add(race)
-    enqueue(session, race, priority=VALIDATION_PRIORITY, max_attempts=settings.max_attempts)
+    enqueue(session, race, priority=priority, max_attempts=settings.max_attempts)
     return race
 
 

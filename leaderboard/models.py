@@ -9,6 +9,8 @@ submissions        a named entry of a user: status, current rating (μ, σ, ordi
 submission_versions  each uploaded bundle of a submission (validated or rejected)
 races              a scheduled or run race: track, seed, laps, status, result JSON, replays
 race_entries       one car of a race: which submission/version, its result, rating change
+race_logs          one car's owner-only logs: DNF detail, policy output, sandbox mode
+web_sessions       signed-in browsers (cookie hash, the API token used, CSRF token)
 rating_history     a submission's (μ, σ) after each ranked race
 jobs               the work queue: one job per race, with lease owner/token/expiry, attempts
 track_records      best lap of each submission on each track
@@ -92,6 +94,7 @@ class Submission(Base):
     __table_args__ = (
         UniqueConstraint("user_id", "name", name="uq_submissions_user_name"),
         Index("ix_submissions_status_ordinal", "status", "ordinal"),
+        Index("ix_submissions_updated_at", "updated_at"),  # leaderboard cache fingerprint
     )
 
     id: Mapped[int] = mapped_column(primary_key=True)
@@ -132,6 +135,7 @@ class SubmissionVersion(Base):
     __tablename__ = "submission_versions"
     __table_args__ = (
         UniqueConstraint("submission_id", "version", name="uq_versions_submission_version"),
+        Index("ix_versions_sha256", "sha256"),  # duplicate bundles are refused
     )
 
     id: Mapped[int] = mapped_column(primary_key=True)
@@ -164,6 +168,8 @@ class Race(Base):
     __table_args__ = (
         Index("ix_races_status_id", "status", "id"),
         Index("ix_races_track_id", "track", "id"),
+        Index("ix_races_kind_status_track", "kind", "status", "track"),  # ranked race counts
+        Index("ix_races_finished_at", "finished_at"),  # track cache fingerprint
     )
 
     id: Mapped[int] = mapped_column(primary_key=True)
@@ -182,11 +188,15 @@ class Race(Base):
     replay_path: Mapped[str | None] = mapped_column(String(1024))
     viser_path: Mapped[str | None] = mapped_column(String(1024))
     error: Mapped[str | None] = mapped_column(Text)
+    # The replay log's events (laps, collisions, off-tracks, finishes, DNFs), for the page's
+    # timeline: ``[{"t": s, "type": ..., "car": "car_i", ...}, ...]`` (capped, see results.py).
+    events: Mapped[list[dict[str, Any]] | None] = mapped_column(JSON)
 
     entries: Mapped[list[RaceEntry]] = relationship(
         back_populates="race", order_by="RaceEntry.car", cascade="all, delete-orphan"
     )
     job: Mapped[Job | None] = relationship(back_populates="race")
+    logs: Mapped[list[RaceLog]] = relationship(cascade="all, delete-orphan")
 
 
 class RaceEntry(Base):
@@ -216,6 +226,8 @@ class RaceEntry(Base):
     laps_completed: Mapped[int | None] = mapped_column(Integer)
     best_lap: Mapped[float | None] = mapped_column(Float)
     total_time: Mapped[float | None] = mapped_column(Float)
+    race_time: Mapped[float | None] = mapped_column(Float)  # s, before penalties
+    penalties: Mapped[float | None] = mapped_column(Float)  # s added (ranked races)
     lap_times: Mapped[list[float] | None] = mapped_column(JSON)
     collisions: Mapped[int | None] = mapped_column(Integer)
     at_fault_collisions: Mapped[int | None] = mapped_column(Integer)
@@ -227,6 +239,40 @@ class RaceEntry(Base):
 
     race: Mapped[Race] = relationship(back_populates="entries")
     submission: Mapped[Submission | None] = relationship()
+
+
+class RaceLog(Base):
+    """What only a car's owner sees: its DNF detail, its policy's output, its sandbox mode.
+
+    ``dnf_detail`` is the traceback or error text (at most 4 KiB); ``output`` the kept head
+    and tail of the policy's stdout/stderr; ``sandbox_mode`` how that car's policy was
+    isolated (``bwrap``, ``seccomp``; ``none`` for our baselines).
+    """
+
+    __tablename__ = "race_logs"
+    __table_args__ = (UniqueConstraint("race_id", "car", name="uq_logs_race_car"),)
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    race_id: Mapped[int] = mapped_column(ForeignKey("races.id", ondelete="CASCADE"))
+    car: Mapped[int] = mapped_column(Integer)
+    dnf_detail: Mapped[str | None] = mapped_column(Text)
+    output: Mapped[str | None] = mapped_column(Text)
+    sandbox_mode: Mapped[str | None] = mapped_column(String(16))
+
+
+class WebSession(Base):
+    """A signed-in browser (:mod:`leaderboard.web.session`): the cookie's SHA-256 hash, the
+    API token it was opened with (revoking that token ends the session), its CSRF token."""
+
+    __tablename__ = "web_sessions"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    session_hash: Mapped[str] = mapped_column(String(64), unique=True)
+    user_id: Mapped[int] = mapped_column(ForeignKey("users.id", ondelete="CASCADE"), index=True)
+    token_id: Mapped[int] = mapped_column(ForeignKey("api_tokens.id", ondelete="CASCADE"))
+    csrf: Mapped[str] = mapped_column(String(64))
+    created_at: Mapped[datetime] = mapped_column(DateTime, default=utcnow)
+    expires_at: Mapped[datetime] = mapped_column(DateTime)
 
 
 class RatingHistory(Base):
@@ -282,6 +328,7 @@ class TrackRecord(Base):
     __table_args__ = (
         UniqueConstraint("track", "submission_id", name="uq_records_track_submission"),
         Index("ix_records_track_best_lap", "track", "best_lap"),
+        Index("ix_records_set_at", "set_at"),  # track cache fingerprint
     )
 
     id: Mapped[int] = mapped_column(primary_key=True)

@@ -13,27 +13,32 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from datetime import datetime
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, Generic, TypeVar
 
-from pydantic import BaseModel, ConfigDict
-from sqlalchemy import Select, func, select
+from pydantic import BaseModel, ConfigDict, SerializerFunctionWrapHandler, field_serializer
+from sqlalchemy import ColumnElement, Select, case, func, select
 from sqlalchemy.orm import Session, selectinload
 
+from leaderboard.cache import cache_for
 from leaderboard.errors import NotFound
 from leaderboard.models import (
     Race,
     RaceEntry,
+    RaceLog,
     RatingHistory,
     Submission,
     SubmissionVersion,
     TrackRecord,
     User,
 )
+from leaderboard.timeline import Penalty, TimelineEvent, penalties, timeline
 
 T = TypeVar("T")
 MAX_PER_PAGE = 200
+PROVISIONAL_RACES = 5  # default of Settings.provisional_races
+SNAPSHOT_MAX_AGE_S = 30.0  # default of Settings.cache_max_age_s
 
 
 class Page(BaseModel, Generic[T]):
@@ -50,14 +55,33 @@ class Page(BaseModel, Generic[T]):
         return max(1, math.ceil(self.total / self.per_page))
 
 
-class _Model(BaseModel):
+class UtcModel(BaseModel):
+    """A model whose times are written in JSON as UTC with a ``Z`` (RFC 3339 ``date-time``).
+
+    Times are stored naive UTC (:func:`leaderboard.models.utcnow`); without the zone their
+    JSON would not be the ``date-time`` the OpenAPI schema promises.
+    """
+
+    @field_serializer("*", mode="wrap", when_used="json")
+    def _utc(self, value: Any, handler: SerializerFunctionWrapHandler) -> Any:
+        if isinstance(value, datetime) and value.tzinfo is None:
+            value = value.replace(tzinfo=UTC)
+        return handler(value)
+
+
+class _Model(UtcModel):
     model_config = ConfigDict(from_attributes=True)
 
 
 class LeaderboardRow(_Model):
-    """One line of the leaderboard (ordinal = μ − 3σ; win rate = wins / races)."""
+    """One line of the leaderboard (ordinal = μ − 3σ; win rate = wins / races).
+
+    ``provisional``: fewer than ``k`` rated races (``Settings.provisional_races``); such rows
+    come after every established one, ranked among themselves by ordinal.
+    """
 
     rank: int
+    provisional: bool
     submission_id: int
     name: str
     author: str
@@ -106,6 +130,9 @@ class EntryInfo(_Model):
     laps_completed: int | None
     best_lap: float | None
     total_time: float | None
+    race_time: float | None = None  # s, before penalties
+    penalties: float | None = None  # s added
+    penalty_items: list[Penalty] = []  # what each penalty was for
     lap_times: list[float]
     collisions: int | None
     at_fault_collisions: int | None
@@ -141,6 +168,8 @@ class RaceDetail(RaceSummary):
     error: str | None
     viser_url: str | None
     replay_url: str | None
+    penalties: bool = True  # DeepRacer time penalties apply
+    events: list[TimelineEvent] = []
 
 
 class SubmissionSummary(_Model):
@@ -214,22 +243,60 @@ def _win_rate(wins: int, races: int) -> float:
 # ---- leaderboard and submissions -------------------------------------------------------------
 
 
-def leaderboard(session: Session, *, page: int = 1, per_page: int = 50) -> Page[LeaderboardRow]:
-    """Active submissions by ordinal (μ − 3σ), best first."""
+def _provisional(k: int) -> ColumnElement[int]:
+    """0 for an established submission (at least ``k`` rated races), 1 for a provisional one."""
+    return case((Submission.races < k, 1), else_=0)
+
+
+def _leaderboard_fingerprint(session: Session) -> tuple[Any, ...]:
+    """What changes whenever the leaderboard can: every writer bumps ``updated_at``; the
+    active count also catches a status changed by hand (both are index look-ups)."""
+    latest = session.scalar(select(func.max(Submission.updated_at)))
+    active = session.scalar(select(func.count(Submission.id)).where(Submission.status == "active"))
+    return latest, active
+
+
+def leaderboard(
+    session: Session,
+    *,
+    page: int = 1,
+    per_page: int = 50,
+    provisional_races: int = PROVISIONAL_RACES,
+    max_age_s: float = SNAPSHOT_MAX_AGE_S,
+) -> Page[LeaderboardRow]:
+    """Active submissions by ordinal (μ − 3σ), best first; provisional ones after the rest.
+
+    A submission with fewer than ``provisional_races`` rated races is *provisional*: its
+    ordinal says little yet (a new one starts at 0, above many established negative ones), so
+    it is listed after every established submission, marked ``provisional``. Snapshots are
+    cached per page (:mod:`leaderboard.cache`) until a submission changes.
+    """
     page, per_page = _clamp(page, per_page)
+    return cache_for(session).get(
+        ("leaderboard", page, per_page, provisional_races),
+        _leaderboard_fingerprint(session),
+        lambda: _leaderboard_page(session, page, per_page, provisional_races),
+        max_age_s,
+    )
+
+
+def _leaderboard_page(
+    session: Session, page: int, per_page: int, provisional_races: int
+) -> Page[LeaderboardRow]:
     total = _count(session, select(func.count(Submission.id)).where(Submission.status == "active"))
     rows = session.execute(
         select(Submission, User.name, SubmissionVersion.version)
         .join(User, User.id == Submission.user_id)
         .outerjoin(SubmissionVersion, SubmissionVersion.id == Submission.active_version_id)
         .where(Submission.status == "active")
-        .order_by(Submission.ordinal.desc(), Submission.id)
+        .order_by(_provisional(provisional_races), Submission.ordinal.desc(), Submission.id)
         .offset((page - 1) * per_page)
         .limit(per_page)
     ).all()
     items = [
         LeaderboardRow(
             rank=(page - 1) * per_page + i + 1,
+            provisional=sub.races < provisional_races,
             submission_id=sub.id,
             name=sub.name,
             author=author,
@@ -295,16 +362,27 @@ def submissions(
     return Page(items=items, total=total, page=page, per_page=per_page)
 
 
-def submission_rank(session: Session, sub: Submission) -> int | None:
-    """The leaderboard rank of an active submission (None otherwise)."""
+def submission_rank(
+    session: Session, sub: Submission, *, provisional_races: int = PROVISIONAL_RACES
+) -> int | None:
+    """The leaderboard rank of an active submission (None otherwise), in
+    :func:`leaderboard`'s order: established submissions first, then provisional ones."""
     if sub.status != "active":
         return None
+    mine = 1 if sub.races < provisional_races else 0
+    group = _provisional(provisional_races)
     better = _count(
         session,
         select(func.count(Submission.id)).where(
             Submission.status == "active",
-            (Submission.ordinal > sub.ordinal)
-            | ((Submission.ordinal == sub.ordinal) & (Submission.id < sub.id)),
+            (group < mine)
+            | (
+                (group == mine)
+                & (
+                    (Submission.ordinal > sub.ordinal)
+                    | ((Submission.ordinal == sub.ordinal) & (Submission.id < sub.id))
+                )
+            ),
         ),
     )
     return better + 1
@@ -378,17 +456,31 @@ def races(
     track: str | None = None,
     status: str | None = None,
     kind: str | None = None,
+    submission_id: int | None = None,
 ) -> Page[RaceSummary]:
-    """Races, newest first; optionally of one track, status or kind."""
+    """Races, newest first; optionally of one track, status, kind or submission."""
     page, per_page = _clamp(page, per_page)
-    where = []
+    where: list[ColumnElement[bool]] = []
+    if submission_id is not None:
+        where.append(
+            Race.id.in_(select(RaceEntry.race_id).where(RaceEntry.submission_id == submission_id))
+        )
     if track:
         where.append(Race.track == track)
     if status:
         where.append(Race.status == status)
     if kind:
         where.append(Race.kind == kind)
-    total = _count(session, select(func.count(Race.id)).where(*where))
+    count = select(func.count(Race.id)).where(*where)
+    if status or submission_id is not None:
+        total = _count(session, count)
+    else:  # only new races change these counts: cached until the newest race id moves (H13)
+        total = cache_for(session).get(
+            ("race-count", track, kind),
+            session.scalar(select(func.max(Race.id))),
+            lambda: _count(session, count),
+            SNAPSHOT_MAX_AGE_S,
+        )
     rows = session.scalars(
         select(Race)
         .where(*where)
@@ -440,9 +532,14 @@ def race_detail(session: Session, race_id: int) -> RaceDetail:
             .where(Submission.id.in_(sub_ids))
         ).all()
     )
+    events = race.events or []
+    items = penalties(events, ranked=race.penalties)
     entries = [
         EntryInfo(
             car=e.car,
+            race_time=e.race_time,
+            penalties=e.penalties,
+            penalty_items=items.get(f"car_{e.car}", []),
             submission_id=e.submission_id,
             name=e.name,
             author=authors.get(e.submission_id) if e.submission_id else None,
@@ -472,7 +569,231 @@ def race_detail(session: Session, race_id: int) -> RaceDetail:
         error=race.error,
         viser_url=f"/replays/{Path(race.viser_path).name}" if race.viser_path else None,
         replay_url=f"/replays/{Path(race.replay_path).name}" if race.replay_path else None,
+        penalties=race.penalties,
+        events=timeline(events, {f"car_{e.car}": e.name for e in race.entries}),
     )
+
+
+class CarLog(_Model):
+    """What only a car's owner sees of one race (``GET /api/races/{id}/logs``)."""
+
+    race_id: int
+    car: int
+    name: str
+    submission_id: int
+    status: str | None
+    dnf_reason: str | None
+    dnf_detail: str | None  # the traceback or error text, at most 4 KiB
+    output: str | None  # the kept head and tail of the policy's stdout/stderr
+    sandbox_mode: str | None  # bwrap | seccomp
+
+
+def race_logs(
+    session: Session, race_id: int, *, user_id: int, submission_id: int | None = None
+) -> list[CarLog]:
+    """The logs of ``user_id``'s cars in a race (optionally of one submission only).
+
+    Raises:
+        NotFound: no such race.
+    """
+    race = session.get(Race, race_id)
+    if race is None:
+        raise NotFound(f"no race {race_id}")
+    where = [RaceEntry.race_id == race_id, Submission.user_id == user_id]
+    if submission_id is not None:
+        where.append(RaceEntry.submission_id == submission_id)
+    rows = session.execute(
+        select(RaceEntry, RaceLog)
+        .join(Submission, Submission.id == RaceEntry.submission_id)
+        .outerjoin(RaceLog, (RaceLog.race_id == RaceEntry.race_id) & (RaceLog.car == RaceEntry.car))
+        .where(*where)
+        .order_by(RaceEntry.car)
+    ).all()
+    return [
+        CarLog(
+            race_id=race_id,
+            car=entry.car,
+            name=entry.name,
+            submission_id=entry.submission_id or 0,  # joined on it: never None here
+            status=entry.status,
+            dnf_reason=entry.dnf_reason,
+            dnf_detail=log.dnf_detail if log else None,
+            output=log.output if log else None,
+            sandbox_mode=log.sandbox_mode if log else race.sandbox,
+        )
+        for entry, log in rows
+    ]
+
+
+class MyRace(_Model):
+    """One race from a submission's point of view (its submission page's races table)."""
+
+    race_id: int
+    kind: str
+    status: str
+    track: str
+    n_cars: int
+    position: int | None
+    car_status: str | None
+    dnf_reason: str | None
+    best_lap: float | None
+    total_time: float | None
+    penalties: float | None
+    mu_change: float | None  # μ after − μ before (ranked races)
+    sigma_change: float | None  # σ after − σ before
+    finished_at: datetime | None
+
+
+class TrackBest(_Model):
+    """A submission's best lap on one track, and the race it was driven in."""
+
+    track: str
+    best_lap: float
+    race_id: int
+
+
+class HeadToHead(_Model):
+    """A submission's record against another one in the ranked races they both drove.
+
+    ``wins``: finished ahead of it; ``losses``: behind; ``draws``: neither finished.
+    """
+
+    submission_id: int
+    name: str
+    author: str
+    races: int
+    wins: int
+    losses: int
+    draws: int
+
+
+def submission_entries(
+    session: Session, submission_id: int, *, page: int = 1, per_page: int = 20
+) -> Page[MyRace]:
+    """A submission's races, newest first, each with its own position, penalties, best lap
+    and rating change."""
+    page, per_page = _clamp(page, per_page)
+    where = RaceEntry.submission_id == submission_id
+    total = _count(session, select(func.count(RaceEntry.id)).where(where))
+    n_cars = (
+        select(func.count(RaceEntry.id))
+        .where(RaceEntry.race_id == Race.id)
+        .correlate(Race)
+        .scalar_subquery()
+    )
+    rows = session.execute(
+        select(RaceEntry, Race, n_cars)
+        .join(Race, Race.id == RaceEntry.race_id)
+        .where(where)
+        .order_by(Race.id.desc())
+        .offset((page - 1) * per_page)
+        .limit(per_page)
+    ).all()
+
+    def change(after: float | None, before: float | None) -> float | None:
+        return after - before if after is not None and before is not None else None
+
+    items = [
+        MyRace(
+            race_id=race.id,
+            kind=race.kind,
+            status=race.status,
+            track=race.track,
+            n_cars=int(count),
+            position=e.position,
+            car_status=e.status,
+            dnf_reason=e.dnf_reason,
+            best_lap=e.best_lap,
+            total_time=e.total_time,
+            penalties=e.penalties,
+            mu_change=change(e.mu_after, e.mu_before),
+            sigma_change=change(e.sigma_after, e.sigma_before),
+            finished_at=race.finished_at,
+        )
+        for e, race, count in rows
+    ]
+    return Page(items=items, total=total, page=page, per_page=per_page)
+
+
+def track_bests(session: Session, submission_id: int) -> list[TrackBest]:
+    """A submission's best lap on every track it has raced ranked, by track name."""
+    rows = session.scalars(
+        select(TrackRecord)
+        .where(TrackRecord.submission_id == submission_id)
+        .order_by(TrackRecord.track)
+    )
+    return [TrackBest(track=r.track, best_lap=r.best_lap, race_id=r.race_id) for r in rows]
+
+
+def head_to_head(session: Session, submission_id: int, *, races: int = 2000) -> list[HeadToHead]:
+    """The submission's record against each submission it met in its latest ``races`` finished
+    ranked races, most-met first (a DNF is behind every finisher; two DNFs draw)."""
+    mine = (
+        select(RaceEntry.race_id, RaceEntry.status, RaceEntry.position)
+        .join(Race, Race.id == RaceEntry.race_id)
+        .where(
+            RaceEntry.submission_id == submission_id,
+            Race.kind == "ranked",
+            Race.status == "finished",
+        )
+        .order_by(RaceEntry.race_id.desc())
+        .limit(races)
+        .subquery()
+    )
+    rows = session.execute(
+        select(
+            RaceEntry.submission_id,
+            RaceEntry.status,
+            RaceEntry.position,
+            mine.c.status,
+            mine.c.position,
+        )
+        .join(mine, mine.c.race_id == RaceEntry.race_id)
+        .where(RaceEntry.submission_id.is_not(None), RaceEntry.submission_id != submission_id)
+    ).all()
+    record: dict[int, list[int]] = {}
+    for other, o_status, o_pos, m_status, m_pos in rows:
+        w_l_d = record.setdefault(int(other), [0, 0, 0])
+        m_done, o_done = m_status == "finished", o_status == "finished"
+        if not m_done and not o_done:
+            w_l_d[2] += 1
+        elif m_done and (not o_done or (m_pos or 0) < (o_pos or 0)):
+            w_l_d[0] += 1
+        else:
+            w_l_d[1] += 1
+    names = {
+        sid: (name, author)
+        for sid, name, author in session.execute(
+            select(Submission.id, Submission.name, User.name)
+            .join(User, User.id == Submission.user_id)
+            .where(Submission.id.in_(record))
+        ).all()
+    }
+    out = [
+        HeadToHead(
+            submission_id=sid,
+            name=names.get(sid, ("?", "?"))[0],
+            author=names.get(sid, ("?", "?"))[1],
+            races=sum(wld),
+            wins=wld[0],
+            losses=wld[1],
+            draws=wld[2],
+        )
+        for sid, wld in record.items()
+    ]
+    return sorted(out, key=lambda h: (-h.races, h.name))
+
+
+def validation_races(session: Session, submission_id: int) -> dict[int, int]:
+    """Version number → the id of its latest validation race."""
+    rows = session.execute(
+        select(SubmissionVersion.version, func.max(Race.id))
+        .join(RaceEntry, RaceEntry.version_id == SubmissionVersion.id)
+        .join(Race, Race.id == RaceEntry.race_id)
+        .where(SubmissionVersion.submission_id == submission_id, Race.kind == "validation")
+        .group_by(SubmissionVersion.version)
+    ).all()
+    return {int(v): int(r) for v, r in rows}
 
 
 # ---- tracks ----------------------------------------------------------------------------------
@@ -502,55 +823,80 @@ def track_records(session: Session, track: str, *, limit: int = 20) -> list[Reco
     ]
 
 
-def tracks(session: Session, names: Sequence[str]) -> list[TrackSummary]:
-    """Each named track with its finished race count and lap record."""
+def _tracks_fingerprint(session: Session) -> tuple[Any, ...]:
+    """What changes when a race finishes or a record falls (two index look-ups)."""
+    return (
+        session.scalar(select(func.max(Race.finished_at))),
+        session.scalar(select(func.max(TrackRecord.set_at))),
+    )
+
+
+def tracks(
+    session: Session, names: Sequence[str], *, max_age_s: float = SNAPSHOT_MAX_AGE_S
+) -> list[TrackSummary]:
+    """Each named track with its finished ranked race count and lap record (cached)."""
+    return cache_for(session).get(
+        ("tracks", tuple(names)),
+        _tracks_fingerprint(session),
+        lambda: _tracks(session, names),
+        max_age_s,
+    )
+
+
+def _tracks(session: Session, names: Sequence[str]) -> list[TrackSummary]:
     counts = dict(
         session.execute(
             select(Race.track, func.count(Race.id))
-            .where(Race.status == "finished")
+            .where(Race.kind == "ranked", Race.status == "finished", Race.track.in_(names))
             .group_by(Race.track)
         ).all()
     )
-    # One query for every track's record: the first row of each track in track_records' order.
-    ranked = (
-        select(
-            TrackRecord.track,
-            TrackRecord.best_lap,
-            Submission.name,
-            func.row_number()
-            .over(partition_by=TrackRecord.track, order_by=(TrackRecord.best_lap, TrackRecord.id))
-            .label("n"),
-        )
-        .join(Submission, Submission.id == TrackRecord.submission_id)
-        .where(TrackRecord.track.in_(names))
-        .subquery()
-    )
-    best = {
-        track: (lap, holder)
-        for track, lap, holder in session.execute(
-            select(ranked.c.track, ranked.c.best_lap, ranked.c.name).where(ranked.c.n == 1)
-        )
-    }
     out = []
     for name in names:
-        record, holder = best.get(name, (None, None))
+        # The track's fastest record: one look-up in the (track, best_lap) index.
+        best = session.execute(
+            select(TrackRecord.best_lap, Submission.name)
+            .join(Submission, Submission.id == TrackRecord.submission_id)
+            .where(TrackRecord.track == name)
+            .order_by(TrackRecord.best_lap, TrackRecord.id)
+            .limit(1)
+        ).first()
         out.append(
             TrackSummary(
-                name=name, races=int(counts.get(name, 0)), record=record, record_holder=holder
+                name=name,
+                races=int(counts.get(name, 0)),
+                record=best[0] if best else None,
+                record_holder=best[1] if best else None,
             )
         )
     return out
 
 
 def track_detail(
-    session: Session, name: str, *, known: Sequence[str] | None = None, limit: int = 20
+    session: Session,
+    name: str,
+    *,
+    known: Sequence[str] | None = None,
+    limit: int = 20,
+    max_age_s: float = SNAPSHOT_MAX_AGE_S,
 ) -> TrackDetail:
-    """A track's records and recent races; ``known`` lists the valid track names.
+    """A track's records and recent ranked races; ``known`` lists the valid track names.
 
     Raises:
-        NotFound: ``name`` is not in ``known`` and no race was run on it.
+        NotFound: ``name`` is not in ``known`` and no ranked race was run on it.
     """
-    recent = races(session, track=name, status="finished", per_page=limit)
+    return cache_for(session).get(
+        ("track", name, limit, tuple(known) if known is not None else None),
+        _tracks_fingerprint(session),
+        lambda: _track_detail(session, name, known, limit),
+        max_age_s,
+    )
+
+
+def _track_detail(
+    session: Session, name: str, known: Sequence[str] | None, limit: int
+) -> TrackDetail:
+    recent = races(session, track=name, status="finished", kind="ranked", per_page=limit)
     if (known is None or name not in known) and recent.total == 0:
         raise NotFound(f"no track {name!r}")
     records = track_records(session, name, limit=limit)

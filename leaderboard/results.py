@@ -8,8 +8,11 @@ it has checked the worker still holds the job's lease, and commits once.
 
 from __future__ import annotations
 
+import gzip
+import json
 import re
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
 from sqlalchemy import select
@@ -19,6 +22,7 @@ from leaderboard.models import (
     SIGMA0,
     Race,
     RaceEntry,
+    RaceLog,
     Submission,
     SubmissionVersion,
     TrackRecord,
@@ -29,6 +33,15 @@ from leaderboard.ratings import ordinal, rate_race
 # DNF reasons that mean the policy itself is broken: a validation race with one fails it.
 POLICY_FAILURES = frozenset({"error", "invalid", "timeout"})
 _CAR = re.compile(r"^car_(\d+)$")
+# DeepRacer's time penalties in ranked races, s (arena.race's constants; a test keeps them
+# equal: the web process does not import the simulator).
+PENALTY_SECONDS = {"off_track": 2.0, "collision": 5.0}
+MAX_EVENTS = 5000  # events kept per race for the timeline
+MAX_LOG_TEXT = 16 * 1024  # characters kept of a car's output (the worker keeps head + tail)
+MAX_DETAIL = 4 * 1024  # characters of a DNF detail (the worker caps it at 4 KiB)
+# Per-car fields of a result that only the owner may see: stored in race_logs, not in the
+# public result document.
+PRIVATE_CAR_FIELDS = ("dnf_detail", "output", "stdout", "stderr", "sandbox_mode")
 
 
 def store_result(
@@ -40,6 +53,7 @@ def store_result(
     viser_path: str | None = None,
     sandbox: str | None = None,
     duration_s: float | None = None,
+    logs: Mapping[str, Mapping[str, Any]] | None = None,
 ) -> None:
     """Record a race result (``RaceResult.to_dict()``) and apply what follows from it.
 
@@ -51,8 +65,14 @@ def store_result(
         viser_path: the 3D replay (``.viser``), if recorded.
         sandbox: how the policies were isolated (``bwrap``, ``seccomp`` or ``none``).
         duration_s: wall time of the race, s.
+        logs: owner-only logs by agent (``car_i``): ``dnf_detail``, ``output`` (or
+            ``stdout``/``stderr``), ``sandbox_mode``; the same keys inside a result's car
+            dicts are taken too, and removed from the stored (public) result.
     """
-    race.result = dict(result)
+    public, private = split_private(result, logs)
+    race.result = public
+    race.events = read_events(replay_path)
+    race.logs = [RaceLog(race_id=race.id, car=car, **fields) for car, fields in private.items()]
     race.status = "finished"
     race.finished_at = utcnow()
     race.replay_path = replay_path
@@ -61,7 +81,7 @@ def store_result(
     race.duration_s = duration_s
     race.error = None
     by_car = {e.car: e for e in race.entries}
-    for car in result.get("cars", []):
+    for car in public.get("cars", []):
         match = _CAR.match(str(car.get("agent", "")))
         entry = by_car.get(int(match.group(1))) if match else None
         if entry is not None:
@@ -80,10 +100,87 @@ def _fill_entry(entry: RaceEntry, car: Mapping[str, Any]) -> None:
     entry.laps_completed = int(car.get("laps_completed", 0))
     entry.best_lap = car.get("best_lap")
     entry.total_time = car.get("total_time")
+    entry.race_time = car.get("race_time")
+    entry.penalties = float(car.get("penalties") or 0.0)
     entry.lap_times = [float(t) for t in car.get("lap_times", [])]
     entry.collisions = int(car.get("collisions", 0))
     entry.at_fault_collisions = int(car.get("at_fault_collisions", 0))
     entry.off_track = int(car.get("off_track", 0))
+
+
+def _text(value: Any, limit: int) -> str | None:
+    if value is None or value == "":
+        return None
+    text = value if isinstance(value, str) else json.dumps(value)
+    return text if len(text) <= limit else text[: limit // 2] + "\n[…]\n" + text[-limit // 2 :]
+
+
+def _output(fields: Mapping[str, Any]) -> str | None:
+    """One text of a car's output: ``output``, or ``stdout`` and ``stderr`` labelled."""
+    if fields.get("output"):
+        return _text(fields["output"], MAX_LOG_TEXT)
+    parts = []
+    for stream in ("stdout", "stderr"):
+        value = fields.get(stream)
+        if isinstance(value, Mapping):  # {"head": ..., "tail": ..., "bytes": n}
+            value = "\n[…]\n".join(
+                str(value.get(k) or "") for k in ("head", "tail") if value.get(k)
+            )
+        if value:
+            parts.append(f"--- {stream} ---\n{value}")
+    return _text("\n".join(parts), MAX_LOG_TEXT) if parts else None
+
+
+def split_private(
+    result: Mapping[str, Any], logs: Mapping[str, Mapping[str, Any]] | None = None
+) -> tuple[dict[str, Any], dict[int, dict[str, Any]]]:
+    """A result without its owner-only fields, and those fields by car index.
+
+    >>> pub, priv = split_private({"cars": [{"agent": "car_1", "dnf_detail": "Traceback"}]})
+    >>> pub, priv[1]["dnf_detail"]
+    ({'cars': [{'agent': 'car_1'}]}, 'Traceback')
+    """
+    public = dict(result)
+    private: dict[int, dict[str, Any]] = {}
+    merged: dict[str, dict[str, Any]] = {k: dict(v) for k, v in (logs or {}).items()}
+    cars = []
+    for car in result.get("cars", []):
+        agent = str(car.get("agent", ""))
+        own = {k: car[k] for k in PRIVATE_CAR_FIELDS if k in car}
+        merged[agent] = own | merged.get(agent, {})
+        cars.append({k: v for k, v in car.items() if k not in PRIVATE_CAR_FIELDS})
+    if "cars" in result:
+        public["cars"] = cars
+    for agent, fields in merged.items():
+        match = _CAR.match(agent)
+        if match is None:
+            continue
+        row = {
+            "dnf_detail": _text(fields.get("dnf_detail"), MAX_DETAIL),
+            "output": _output(fields),
+            "sandbox_mode": str(fields["sandbox_mode"])[:16]
+            if fields.get("sandbox_mode")
+            else None,
+        }
+        if any(row.values()):
+            private[int(match.group(1))] = row
+    return public, private
+
+
+def read_events(replay_path: str | None) -> list[dict[str, Any]] | None:
+    """The events of a replay log (``.replay.json.gz``), at most :data:`MAX_EVENTS`; None if
+    the file is missing or unreadable (the race is stored anyway)."""
+    if not replay_path:
+        return None
+    try:
+        with gzip.open(Path(replay_path), "rb") as fh:
+            doc = json.loads(fh.read().decode("utf-8"))
+        events = doc.get("events", [])
+    except (OSError, EOFError, ValueError, AttributeError):
+        return None
+    if not isinstance(events, list):
+        return None
+    return [e for e in events if isinstance(e, dict)][:MAX_EVENTS]
 
 
 def _judge_validation(session: Session, race: Race) -> None:

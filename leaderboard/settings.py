@@ -8,7 +8,8 @@ import time: :func:`leaderboard.app.create_app` takes a ``Settings`` object.
 Files the service keeps under ``data_dir``::
 
     data_dir/leaderboard.db                     SQLite database (when database_url is unset)
-    data_dir/bundles/<submission>/v<n>.zip      every uploaded bundle version, as uploaded
+    data_dir/bundles/<submission>/v<n>-<r>.zip  every uploaded bundle version, as uploaded
+                                                (<r>: random, so concurrent uploads never clash)
     data_dir/replays/<race_id>.viser            3D replay (served at /replays/<race_id>.viser)
     data_dir/replays/<race_id>.replay.json.gz   raw replay log (to regenerate the .viser files)
 """
@@ -57,6 +58,52 @@ class Settings(BaseSettings):
     min_cars: int = Field(default=2, ge=2, le=8, description="fewest cars in a ranked race")
     max_cars: int = Field(default=4, ge=2, le=8, description="most cars in a ranked race")
     page_size: int = Field(default=50, ge=1, le=500, description="default rows per page")
+    provisional_races: int = Field(
+        default=5,
+        ge=0,
+        description="rated races before a submission leaves the provisional part of the table",
+    )
+    # ---- front door (see leaderboard.limits and leaderboard.security) ----
+    allowed_hosts: list[str] = Field(
+        default=["127.0.0.1", "localhost"],
+        description="Host header values served (TrustedHostMiddleware; '*' allows any)",
+    )
+    max_request_kb: float = Field(
+        default=64.0, gt=0, description="largest request body outside uploads, KiB"
+    )
+    body_idle_timeout_s: float = Field(
+        default=15.0, gt=0, description="longest wait for the next piece of a request body, s"
+    )
+    upload_timeout_s: float = Field(
+        default=300.0, gt=0, description="longest time to receive a whole request body, s"
+    )
+    keep_alive_s: float = Field(
+        default=5.0, gt=0, description="idle keep-alive connections are closed after this, s"
+    )
+    max_connections: int = Field(
+        default=256, ge=1, description="concurrent connections before uvicorn answers 503"
+    )
+    rate_limits: bool = Field(default=True, description="enforce the rate limits below")
+    rate_limit_ip: str = Field(default="600/minute", description="requests per client address")
+    rate_limit_token: str = Field(default="300/minute", description="requests per API token")
+    rate_limit_auth_failures: str = Field(
+        default="20/minute", description="401 answers per client address before 429s"
+    )
+    rate_limit_storage: str = Field(
+        default="memory://", description="counter storage of the `limits` library (redis://...)"
+    )
+    max_uploads_per_day: int = Field(
+        default=20, ge=1, description="bundle uploads per user in any 24 hours"
+    )
+    max_active_submissions: int = Field(
+        default=10, ge=1, description="submissions per user that are pending or active"
+    )
+    random_track_images: int = Field(
+        default=64, ge=1, description="plots of generated (random:) tracks kept on disk"
+    )
+    cache_max_age_s: float = Field(
+        default=30.0, ge=0, description="longest a cached leaderboard/track snapshot is kept, s"
+    )
 
     @field_validator("admin_token")
     @classmethod
@@ -65,6 +112,14 @@ class Settings(BaseSettings):
             raise ValueError("admin_token is a well-known placeholder; set a random secret")
         if value is not None and len(value.get_secret_value()) < 16:
             raise ValueError("admin_token must be at least 16 characters")
+        return value
+
+    @field_validator("rate_limit_ip", "rate_limit_token", "rate_limit_auth_failures")
+    @classmethod
+    def _valid_rate(cls, value: str) -> str:
+        import limits  # noqa: PLC0415 - only to check the syntax
+
+        limits.parse(value)  # ValueError names the bad rate
         return value
 
     @property

@@ -2,10 +2,16 @@
 
 An upload is streamed to disk with a size cap, validated by the submissions package
 (:func:`submissions.bundle.open_bundle`: archive safety, manifest, declared spaces), then kept
-as ``bundles_dir/<submission id>/v<version>.zip``. The manifest's ``name`` picks the submission
-among the uploader's own: a new name creates a submission, a known one adds a version. Only
-the owner can add versions to a submission or withdraw it. Each new version is queued for a
-validation race (:func:`leaderboard.matchmaking.schedule_validation`).
+as ``bundles_dir/<submission id>/v<version>-<random>.zip``. The manifest's ``name`` picks the
+submission among the uploader's own: a new name creates a submission, a known one adds a
+version. Only the owner can add versions to a submission or withdraw it. Each new version is
+queued for a validation race (:func:`leaderboard.matchmaking.schedule_validation`).
+
+Quotas (settings): ``max_uploads_per_day`` uploads per user in any 24 hours (429 with
+``Retry-After``), ``max_active_submissions`` pending or active submissions per user and
+``max_versions`` versions per submission (409). A bundle byte-identical (same SHA-256) to a
+version already stored and not rejected is refused with 409. Concurrent uploads of one new
+name get 201 or 409, never a server error: the database part is retried on a lost race.
 
 The web process must not import the simulator: the bundle's manifest is checked against
 :meth:`~submissions.bundle.EnvSpec.current`, which reads :mod:`arena.version` (no pybullet).
@@ -14,16 +20,28 @@ The web process must not import the simulator: the bundle's manifest is checked 
 from __future__ import annotations
 
 import hashlib
+import math
 import os
+import secrets
 import shutil
 import tempfile
+import time
+from datetime import timedelta
 from pathlib import Path
 from typing import BinaryIO
 
 from sqlalchemy import func, select
+from sqlalchemy.exc import IntegrityError, OperationalError
 from sqlalchemy.orm import Session
 
-from leaderboard.errors import Conflict, Forbidden, InvalidBundle, NotFound, PayloadTooLarge
+from leaderboard.errors import (
+    Conflict,
+    Forbidden,
+    InvalidBundle,
+    NotFound,
+    PayloadTooLarge,
+    QuotaExceeded,
+)
 from leaderboard.matchmaking import schedule_validation
 from leaderboard.models import Submission, SubmissionVersion, User, utcnow
 from leaderboard.settings import Settings
@@ -32,6 +50,9 @@ from submissions.errors import BundleError
 
 BASELINES = ("pursuit", "gap", "random")
 _CHUNK = 1 << 20
+QUOTA_WINDOW = timedelta(days=1)
+_DB_RETRIES = 5  # tries of an upload's database part when a concurrent upload wins a race
+UPLOAD_NAME = "the uploaded bundle"  # how errors name the file (never the server's temp path)
 
 
 def save_stream(src: BinaryIO, dest: Path, max_bytes: int) -> tuple[int, str]:
@@ -58,15 +79,59 @@ def validate_bundle(path: Path, settings: Settings) -> Manifest:
     """Check an uploaded bundle with the submissions package's validator; its manifest.
 
     Raises:
-        InvalidBundle: the validator's one-line reason.
+        InvalidBundle: the validator's one-line reason (the server's own file and folder
+            names replaced by "the uploaded bundle").
     """
     limits = BundleLimits(max_archive_bytes=settings.max_upload_bytes)
     with tempfile.TemporaryDirectory(prefix="slipstream-check-") as tmp:
         try:
             bundle = open_bundle(path, Path(tmp) / "bundle", limits, env=EnvSpec.current())
         except BundleError as err:
-            raise InvalidBundle(f"invalid bundle: {err}") from None
+            message = str(err)
+            for private in (str(path.resolve()), str(path), str(Path(tmp).resolve()), tmp):
+                message = message.replace(private, UPLOAD_NAME)
+            message = message.replace(path.name, UPLOAD_NAME)
+            raise InvalidBundle(f"invalid bundle: {message}") from None
     return bundle.manifest
+
+
+def check_daily_quota(session: Session, settings: Settings, user: User) -> None:
+    """Refuse an upload past ``settings.max_uploads_per_day`` in the last 24 hours.
+
+    Raises:
+        QuotaExceeded: with ``retry_after`` = seconds until the oldest counted upload ages out.
+    """
+    since = utcnow() - QUOTA_WINDOW
+    count, oldest = session.execute(
+        select(func.count(SubmissionVersion.id), func.min(SubmissionVersion.created_at))
+        .join(Submission, Submission.id == SubmissionVersion.submission_id)
+        .where(Submission.user_id == user.id, SubmissionVersion.created_at > since)
+    ).one()
+    if count >= settings.max_uploads_per_day:
+        wait = (oldest + QUOTA_WINDOW - utcnow()).total_seconds() if oldest else 60.0
+        raise QuotaExceeded(
+            f"{count} uploads in the last 24 hours; the limit is {settings.max_uploads_per_day}",
+            retry_after=max(1, math.ceil(wait)),
+        )
+
+
+def check_duplicate(session: Session, sha256: str) -> None:
+    """Refuse a bundle identical to a stored version that was not rejected.
+
+    Raises:
+        Conflict: names the submission and version that hold the same bytes.
+    """
+    row = session.execute(
+        select(Submission.id, Submission.name, SubmissionVersion.version)
+        .join(Submission, Submission.id == SubmissionVersion.submission_id)
+        .where(SubmissionVersion.sha256 == sha256, SubmissionVersion.status != "rejected")
+        .limit(1)
+    ).first()
+    if row is not None:
+        raise Conflict(
+            f"this bundle is identical (SHA-256 {sha256[:12]}…) to version {row.version} of "
+            f"submission {row.id} ({row.name!r}); change something before uploading it again"
+        )
 
 
 def upload(
@@ -77,11 +142,11 @@ def upload(
     stream: BinaryIO,
     submission_id: int | None = None,
 ) -> SubmissionVersion:
-    """Store an uploaded bundle as a new submission or a new version of one.
+    """Store an uploaded bundle as a new submission or a new version of one, and commit.
 
     Args:
-        session: the caller's transaction (flushed, not committed).
-        settings: for the size limit and the bundle folder.
+        session: the caller's session, with nothing pending (this commits).
+        settings: for the size limit, the quotas and the bundle folder.
         user: the uploader.
         stream: the bundle zip.
         submission_id: add a version to this submission (must be the user's); by default
@@ -90,8 +155,11 @@ def upload(
     Raises:
         PayloadTooLarge, InvalidBundle: the upload is refused (nothing is stored).
         NotFound, Forbidden: adding by id to a missing submission or someone else's.
-        Conflict: the submission has ``settings.max_versions`` versions already.
+        QuotaExceeded: the user's daily upload quota is spent.
+        Conflict: a duplicate bundle, too many versions or active submissions, or concurrent
+            uploads that kept colliding.
     """
+    check_daily_quota(session, settings, user)
     settings.ensure_dirs()
     incoming = settings.bundles_dir / ".incoming"
     incoming.mkdir(exist_ok=True)
@@ -101,24 +169,55 @@ def upload(
     try:
         size, sha = save_stream(stream, tmp, settings.max_upload_bytes)
         manifest = validate_bundle(tmp, settings)
-        if submission_id is None:
-            sub = _named_submission(session, user, manifest.name)
-        else:
-            sub = owned_submission(session, user=user, submission_id=submission_id)
-        if manifest.description:
-            sub.description = manifest.description
-        version = _new_version(session, settings, sub, source="", fmt=manifest.format)
-        dest = settings.bundles_dir / str(sub.id) / f"v{version.version}.zip"
-        dest.parent.mkdir(parents=True, exist_ok=True)
-        shutil.move(tmp, dest)
-        version.source = str(dest.resolve())
-        version.manifest = manifest.to_dict()
-        version.size_bytes = size
-        version.sha256 = sha
-        schedule_validation(session, settings, version)
-        return version
+        session.commit()  # the caller's work, and a fresh snapshot that sees concurrent uploads
+        for attempt in range(_DB_RETRIES):
+            try:
+                return _store(session, settings, user, tmp, manifest, size, sha, submission_id)
+            except (IntegrityError, OperationalError):
+                session.rollback()  # another upload won a race (same name, same version)
+                time.sleep(0.02 * (attempt + 1))
+        raise Conflict("concurrent uploads to this submission kept colliding; try again")
     finally:
         tmp.unlink(missing_ok=True)
+
+
+def _store(
+    session: Session,
+    settings: Settings,
+    user: User,
+    tmp: Path,
+    manifest: Manifest,
+    size: int,
+    sha: str,
+    submission_id: int | None,
+) -> SubmissionVersion:
+    """The database part of :func:`upload`: one transaction, committed; the file linked in."""
+    check_duplicate(session, sha)
+    if submission_id is None:
+        sub = _named_submission(session, user, manifest.name, settings=settings)
+    else:
+        sub = owned_submission(session, user=user, submission_id=submission_id)
+    if manifest.description:
+        sub.description = manifest.description
+    version = _new_version(session, settings, sub, source="", fmt=manifest.format)
+    dest = settings.bundles_dir / str(sub.id) / f"v{version.version}-{secrets.token_hex(4)}.zip"
+    version.source = str(dest.resolve())
+    version.manifest = manifest.to_dict()
+    version.size_bytes = size
+    version.sha256 = sha
+    schedule_validation(session, settings, version)
+    session.flush()
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    try:  # the bundle is in place before a worker can see its validation race
+        os.link(tmp, dest)
+    except OSError:  # no hard links on this file system
+        shutil.copyfile(tmp, dest)
+    try:
+        session.commit()
+    except BaseException:
+        dest.unlink(missing_ok=True)
+        raise
+    return version
 
 
 def add_baseline(
@@ -142,12 +241,37 @@ def add_baseline(
     return version
 
 
-def _named_submission(session: Session, user: User, name: str, description: str = "") -> Submission:
-    """The user's submission called ``name``, created (with ``description``) if missing."""
+def _named_submission(
+    session: Session,
+    user: User,
+    name: str,
+    description: str = "",
+    *,
+    settings: Settings | None = None,
+) -> Submission:
+    """The user's submission called ``name``, created (with ``description``) if missing.
+
+    With ``settings``, a new one counts against ``settings.max_active_submissions``.
+
+    Raises:
+        Conflict: the user already has that many pending or active submissions.
+    """
     sub = session.scalar(
         select(Submission).where(Submission.user_id == user.id, Submission.name == name)
     )
     if sub is None:
+        if settings is not None:
+            live = session.scalar(
+                select(func.count(Submission.id)).where(
+                    Submission.user_id == user.id, Submission.status.in_(("pending", "active"))
+                )
+            )
+            if (live or 0) >= settings.max_active_submissions:
+                raise Conflict(
+                    f"you have {live} pending or active submissions; the limit is "
+                    f"{settings.max_active_submissions} (withdraw one, or upload a new "
+                    "version of an existing one)"
+                )
         sub = Submission(user_id=user.id, name=name, description=description)
         session.add(sub)
         session.flush()

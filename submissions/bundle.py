@@ -67,7 +67,9 @@ FORMATS = ("slipstream", "sb3", "torchscript", "python")
 OBS_MODES = ("vector",)
 ACTION_MODES = ("continuous", "discrete")
 ZIP_FORMATS = ("slipstream", "sb3", "torchscript")  # entry files that are zip archives
-NAME_PATTERN = re.compile(r"[A-Za-z0-9_.-]{1,64}")
+# A bundle's name names folders and files (evaluate's output folder, job ids): it starts with
+# a letter or digit, so "", ".", "..", ".hidden" and "-option" are refused; no "/" anywhere.
+NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
 IDENTIFIER = re.compile(r"[A-Za-z_][A-Za-z0-9_]{0,63}")
 MAX_AUTHOR = 128  # characters
 MAX_DESCRIPTION = 4096  # characters

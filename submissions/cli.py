@@ -8,7 +8,12 @@
    ``seed, seed + 1, …``, the bundle's grid slot rotating so it starts from every position.
 
 Every race writes its replay log and ``.viser`` 3D replay into ``--out``. Jobs run in a local
-process pool (``--workers``) or on Ray (``--ray-address``).
+process pool (``--workers``) or on Ray (``--ray-address``), each with a wall-clock limit
+(``--job-timeout``).
+
+The bundle is untrusted: it runs only in the bubblewrap namespace sandbox. Where that cannot
+run, ``evaluate`` refuses (exit 2) unless ``--allow-weak-sandbox`` accepts the weaker seccomp
+fallback (logged; every result then records ``sandbox: seccomp-weak``).
 """
 
 from __future__ import annotations
@@ -55,6 +60,19 @@ def register(sub: Any) -> None:
         "default: a local process pool",
     )
     p.add_argument("--workers", type=int, default=2, help="races at once in the local pool")
+    p.add_argument(
+        "--job-timeout",
+        type=float,
+        default=None,
+        metavar="S",
+        help="kill a race (and every process of it) after S seconds (default: 900)",
+    )
+    p.add_argument(
+        "--allow-weak-sandbox",
+        action="store_true",
+        help="where bubblewrap cannot run, race the bundle in the weaker seccomp fallback "
+        "(logged and recorded on every result) instead of refusing",
+    )
     p.add_argument(
         "--no-viser", action="store_true", help="skip the .viser 3D replays (logs are kept)"
     )
@@ -148,14 +166,21 @@ def evaluate_command(args: argparse.Namespace) -> int:
 
     from agents.cli import results_table
     from submissions.bundle import open_bundle
-    from submissions.executors import make_executor
+    from submissions.executors import JOB_TIMEOUT_S, make_executor
+    from submissions.sandbox import allow_weak_sandbox, sandbox_mode
 
+    if args.allow_weak_sandbox:
+        allow_weak_sandbox()
+    sandbox_mode()  # fail closed here, in one line, before anything runs
     bundle = args.bundle.resolve()
     with tempfile.TemporaryDirectory(prefix="slipstream-check-") as tmp:
         manifest = open_bundle(bundle, Path(tmp) / "bundle").manifest  # fail fast, clearly
     out = (args.out or Path("artifacts") / "evaluate" / manifest.name).resolve()
     jobs = build_jobs(args, bundle, manifest.name, out)
-    executor = make_executor(args.ray_address, workers=args.workers)
+    timeout = JOB_TIMEOUT_S if args.job_timeout is None else args.job_timeout
+    if not timeout > 0:
+        raise SubmissionError(f"--job-timeout must be positive, not {args.job_timeout}")
+    executor = make_executor(args.ray_address, workers=args.workers, job_timeout_s=timeout)
     to_stdout = args.json == "-"
     console = Console(stderr=to_stdout)
     results: list[Any] = []

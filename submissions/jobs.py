@@ -16,16 +16,29 @@ race starts them all at once (they load in parallel), drives them two-phase, and
 whose policy fails (to load, in time, or with a valid action) with the failure's reason
 (``error`` / ``timeout`` / ``invalid``); the race goes on for the others.
 
+Every race has a wall-clock limit (:attr:`RaceJob.wall_clock_s`; by default
+:func:`race_wall_clock_s`: ``3 ×`` the simulated race's time limit plus the sandbox's start-up
+allowance). A sandboxed car still racing when it is reached is retired ``timeout``, so a
+policy that answers just under its step deadline every step cannot stretch a race without
+bound; baselines run in-process and finish the race at simulator speed.
+
+What a policy can make the host keep is capped: each car's ``dnf_detail`` (the failure's
+text, in the result and in the replay's ``dnf`` events) at 4 KiB
+(:data:`~submissions.protocol.MAX_TEXT`), and its worker's stdout/stderr at the first 4 KiB
+and the last 16 KiB (:attr:`JobResult.logs`).
+
 This module imports nothing heavy at import time (the leaderboard's web process builds jobs);
 the simulator, torch and the sandbox are imported inside :func:`run_race_job`.
 """
 
 from __future__ import annotations
 
+import logging
+import os
 import re
 import tempfile
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -36,12 +49,27 @@ from submissions.errors import SubmissionError
 if TYPE_CHECKING:
     from agents.policy import Policy
     from submissions.bundle import Bundle
-    from submissions.remote import SandboxedPolicy
+    from submissions.remote import SandboxedPolicy, SandboxPool
     from submissions.sandbox import SandboxLimits
 
+log = logging.getLogger(__name__)
 BASELINE_NAMES = ("pursuit", "gap", "random")  # agents.baselines.BASELINES (tested equal)
 JOB_ID = re.compile(r"[A-Za-z0-9_.-]{1,128}")
 MIN_CARS, MAX_CARS = 2, 8
+CONTROL_HZ = 20  # control steps per simulated second of an evaluation race
+PROGRESS_EVERY_S = 1.0  # how often a running job rewrites its progress file, s
+WALL_CLOCK_FACTOR = 3.0  # wall-clock seconds allowed per simulated second of the step limit
+MAX_DETAIL = 4096  # bytes of a car's dnf_detail kept (= submissions.protocol.MAX_TEXT)
+
+
+def race_wall_clock_s(max_steps: int, startup_s: float, control_hz: int = CONTROL_HZ) -> float:
+    """The default wall-clock limit of a race, s: ``WALL_CLOCK_FACTOR`` × its simulated time
+    limit (``max_steps / control_hz`` s) plus the start-up allowance ``startup_s``.
+
+    >>> race_wall_clock_s(400, 60.0)
+    120.0
+    """
+    return WALL_CLOCK_FACTOR * max_steps / control_hz + startup_s
 
 
 @dataclass(frozen=True)
@@ -79,6 +107,8 @@ class RaceJob:
         ranked: DeepRacer time penalties.
         limits: sandbox limits for the bundles (None: the sandbox's defaults).
         record_viser: also write the ``.viser`` 3D replay.
+        wall_clock_s: the race's wall-clock limit from the job's start, s (None: the
+            default, :func:`race_wall_clock_s`).
     """
 
     job_id: str
@@ -90,6 +120,7 @@ class RaceJob:
     ranked: bool = True
     limits: SandboxLimits | None = None
     record_viser: bool = True
+    wall_clock_s: float | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.job_id, str) or not JOB_ID.fullmatch(self.job_id):
@@ -100,6 +131,8 @@ class RaceJob:
             )
         if self.laps < 1:
             raise SubmissionError(f"laps must be at least 1, not {self.laps}")
+        if self.wall_clock_s is not None and not self.wall_clock_s > 0:
+            raise SubmissionError(f"wall_clock_s must be positive, not {self.wall_clock_s}")
 
     @property
     def replay_path(self) -> Path:
@@ -127,6 +160,7 @@ class RaceJob:
         """
         try:
             limits = None
+            wall = doc.get("wall_clock_s")
             if doc.get("limits") is not None:
                 from submissions.sandbox import SandboxLimits  # noqa: PLC0415 - light, lazy
 
@@ -141,6 +175,7 @@ class RaceJob:
                 ranked=bool(doc.get("ranked", True)),
                 limits=limits,
                 record_viser=bool(doc.get("record_viser", True)),
+                wall_clock_s=None if wall is None else float(wall),
             )
         except (KeyError, TypeError, ValueError) as err:
             raise SubmissionError(f"malformed race job: {type(err).__name__}: {err}") from None
@@ -155,12 +190,17 @@ class JobResult:
         result: :meth:`arena.race.RaceResult.to_dict` (empty when ``error`` is set).
         replay_path: the gzip JSON replay log ("" when ``error`` is set).
         viser_path: the ``.viser`` replay, or None.
-        sandbox: ``"bwrap"`` or ``"seccomp"`` (the weakest mode any bundle ran under), or
-            ``"none"`` when only baselines raced.
+        sandbox: ``"bwrap"`` or ``"seccomp-weak"`` (the weakest mode any bundle ran under:
+            :func:`submissions.sandbox.mode_label`), or ``"none"`` when only baselines raced.
         duration_s: wall-clock seconds of the job.
         error: set by an executor when the job failed for good (raised, or its worker died
             more than ``max_retries`` times); one line.
         attempts: how many times an executor ran the job.
+        entrants: the job's entrants (``Entrant`` as dicts), car ``i`` first.
+        logs: per sandboxed car (``"car_i"``, owner-only on the site): ``output``, its
+            worker's stdout/stderr (the first 4 KiB, a ``[… N bytes not kept …]`` line, the
+            last 16 KiB) and ``sandbox_mode`` (``"bwrap"`` or ``"seccomp-weak"``). Each car of
+            ``result["cars"]`` also has ``dnf_detail``: its failure's text (≤ 4 KiB) or None.
     """
 
     job_id: str
@@ -172,6 +212,7 @@ class JobResult:
     error: str | None = None
     attempts: int = 1
     entrants: list[dict[str, Any]] = field(default_factory=list)
+    logs: dict[str, dict[str, str]] = field(default_factory=dict)
 
     @property
     def ok(self) -> bool:
@@ -206,19 +247,56 @@ class JobResult:
         )
 
 
-def _sandboxed(bundle: Bundle, job: RaceJob, env: EnvSpec, name: str) -> SandboxedPolicy:
+def _sandboxed(
+    bundle: Bundle, job: RaceJob, env: EnvSpec, name: str, pool: SandboxPool | None
+) -> SandboxedPolicy:
     from submissions.remote import SandboxedPolicy, make_env_spec  # noqa: PLC0415 - the sandbox
 
     spec = make_env_spec(lidar_rays=env.lidar_rays, k_opponents=env.k_opponents)
-    policy = SandboxedPolicy(bundle, job.limits, spec)
+    if pool is not None:
+        policy = pool.policy(bundle, job.limits, spec)
+    else:
+        policy = SandboxedPolicy(bundle, job.limits, spec)
     policy.name = name
     return policy
 
 
+def _cap_details(result: dict[str, Any], events: list[dict[str, Any]]) -> None:
+    """Cap every ``dnf`` event's detail; copy each car's first one into ``result``."""
+    from submissions.protocol import cap_text  # noqa: PLC0415 - light, but keep imports lazy
+
+    details: dict[str, str] = {}
+    for event in events:
+        if event.get("type") == "dnf" and "detail" in event:
+            event["detail"] = cap_text(str(event["detail"]), MAX_DETAIL)
+            details.setdefault(str(event.get("car")), event["detail"])
+    for car in result.get("cars", []):
+        car["dnf_detail"] = details.get(car.get("agent")) if car.get("status") == "dnf" else None
+
+
 def _weakest_mode(modes: list[str]) -> str:
+    """What the result records: ``"none"``, ``"bwrap"`` or ``"seccomp-weak"`` (any fallback)."""
+    from submissions.sandbox import mode_label  # noqa: PLC0415 - light, but keep imports lazy
+
     if not modes:
         return "none"
-    return "seccomp" if "seccomp" in modes else modes[0]
+    return mode_label("seccomp" if "seccomp" in modes else modes[0])
+
+
+def progress_path(job: RaceJob) -> Path:
+    """The file a running job keeps its latest step number in (text), rewritten at most
+    every :data:`PROGRESS_EVERY_S` s and removed when the job ends: a leaderboard worker
+    renews its lease only while this changes."""
+    return Path(job.out_dir) / f".{job.job_id}.progress"
+
+
+def _write_progress(path: Path, step: int) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        tmp.write_text(str(step), encoding="utf-8")
+        os.replace(tmp, path)
+    except OSError:  # progress is advisory: a full disk must not fail the race
+        log.warning("could not write the progress file %s", path)
 
 
 def run_race_job(job: RaceJob) -> JobResult:
@@ -228,44 +306,108 @@ def run_race_job(job: RaceJob) -> JobResult:
         SubmissionError: a bundle is invalid (:class:`~submissions.errors.BundleError`), the
             sandbox cannot be set up, or the track does not load.
     """
+    with tempfile.TemporaryDirectory(prefix=f"slipstream-{job.job_id}-") as tmp:
+        return _run_job(job, Path(tmp), {}, None)
+
+
+def run_race_jobs(jobs: Sequence[RaceJob]) -> list[JobResult]:
+    """Run ``jobs`` one after another in this process, sharing between them each bundle's
+    extraction and its started sandboxes (:class:`~submissions.remote.SandboxPool`): a
+    batch pays each sandbox's start-up once. Every sandbox is killed before it returns.
+
+    A job that fails (a :class:`SubmissionError`) gets a :meth:`JobResult.failed` result;
+    the others still run.
+    """
+    from submissions.remote import SandboxPool  # noqa: PLC0415 - the sandbox
+
+    results: list[JobResult] = []
+    with tempfile.TemporaryDirectory(prefix="slipstream-batch-") as tmp, SandboxPool() as pool:
+        opened: dict[str, Bundle] = {}
+        for job in jobs:
+            begun = time.perf_counter()
+            try:
+                results.append(_run_job(job, Path(tmp), opened, pool))
+            except SubmissionError as err:
+                line = f"{type(err).__name__}: {err}".splitlines()[0]
+                results.append(JobResult.failed(job, line, 1, time.perf_counter() - begun))
+    return results
+
+
+def _run_job(
+    job: RaceJob, tmp: Path, bundles: dict[str, Bundle], pool: SandboxPool | None
+) -> JobResult:
+    """:func:`run_race_job` with bundles extracted under ``tmp`` (cached by source in
+    ``bundles``) and sandboxes from ``pool`` (None: fresh ones, killed after the race)."""
     from agents.baselines import make_baseline  # noqa: PLC0415 - heavy: the simulator
     from arena.observations import ObservationLayout  # noqa: PLC0415
     from arena.race import run_race  # noqa: PLC0415
+    from submissions.sandbox import mode_label  # noqa: PLC0415
 
     start = time.perf_counter()
+    started = time.monotonic()
     env = EnvSpec.current()
     layout = ObservationLayout(env.lidar_rays, env.k_opponents)
     out_dir = Path(job.out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     policies: list[Policy] = []
     sandboxed: list[SandboxedPolicy] = []
-    with tempfile.TemporaryDirectory(prefix=f"slipstream-{job.job_id}-") as tmp:
-        try:
-            bundles: dict[str, Bundle] = {}
-            for entrant in job.entrants:
-                if entrant.is_baseline:
-                    policy: Any = make_baseline(entrant.source, layout)
-                    policy.name = entrant.name
-                else:
-                    if entrant.source not in bundles:
-                        dest = Path(tmp) / f"bundle_{len(bundles)}"
-                        bundles[entrant.source] = open_bundle(Path(entrant.source), dest, env=env)
-                    policy = _sandboxed(bundles[entrant.source], job, env, entrant.name)
-                    sandboxed.append(policy)
-                policies.append(policy)
-            result, replay = run_race(
-                policies,
-                track=job.track,
-                laps=job.laps,
-                seed=job.seed,
-                ranked=job.ranked,
-                record=True,
-                env_kwargs={"lidar_rays": env.lidar_rays, "k_opponents": env.k_opponents},
-            )
-        finally:
+    agents: dict[int, str] = {}  # id(sandboxed policy) → its car
+
+    progress_file = progress_path(job)
+    last_write = [0.0]
+
+    def on_step(step: int, max_steps: int) -> None:
+        if step == 1 and job.wall_clock_s is None:
+            startup = sandboxed[0].limits.startup_s if sandboxed else 0.0
+            deadline = started + race_wall_clock_s(max_steps, startup)
             for policy in sandboxed:
-                policy.close()
+                policy.race_deadline = deadline
+        now = time.monotonic()
+        if now - last_write[0] >= PROGRESS_EVERY_S:
+            last_write[0] = now
+            _write_progress(progress_file, step)
+
+    logs: dict[str, dict[str, str]] = {}
+    try:
+        for entrant in job.entrants:
+            if entrant.is_baseline:
+                policy: Any = make_baseline(entrant.source, layout)
+                policy.name = entrant.name
+            else:
+                if entrant.source not in bundles:
+                    dest = tmp / f"bundle_{len(bundles)}"
+                    bundles[entrant.source] = open_bundle(Path(entrant.source), dest, env=env)
+                policy = _sandboxed(bundles[entrant.source], job, env, entrant.name, pool)
+                if job.wall_clock_s is not None:
+                    policy.race_deadline = started + job.wall_clock_s
+                agents[id(policy)] = f"car_{len(policies)}"
+                sandboxed.append(policy)
+            policies.append(policy)
+        result, replay = run_race(
+            policies,
+            track=job.track,
+            laps=job.laps,
+            seed=job.seed,
+            ranked=job.ranked,
+            record=True,
+            progress=on_step,
+            env_kwargs={
+                "lidar_rays": env.lidar_rays,
+                "k_opponents": env.k_opponents,
+                "control_hz": CONTROL_HZ,
+            },
+        )
+        logs = {
+            agents[id(p)]: {"output": p.output, "sandbox_mode": mode_label(p.mode)}
+            for p in sandboxed
+        }
+    finally:
+        for policy in sandboxed:
+            policy.close()
+        progress_file.unlink(missing_ok=True)
     assert replay is not None  # record=True
+    doc = result.to_dict()
+    _cap_details(doc, replay.events)
     replay.save(job.replay_path)
     viser_path = None
     if job.record_viser:
@@ -274,13 +416,23 @@ def run_race_job(job: RaceJob) -> JobResult:
         viser_path = str(write_viser(replay, job.viser_path))
     return JobResult(
         job_id=job.job_id,
-        result=result.to_dict(),
+        result=doc,
         replay_path=str(job.replay_path),
         viser_path=viser_path,
         sandbox=_weakest_mode([p.mode for p in sandboxed]),
         duration_s=round(time.perf_counter() - start, 3),
         entrants=[asdict(e) for e in job.entrants],
+        logs=logs,
     )
 
 
-__all__ = ["BASELINE_NAMES", "Entrant", "JobResult", "RaceJob", "run_race_job"]
+__all__ = [
+    "BASELINE_NAMES",
+    "Entrant",
+    "JobResult",
+    "RaceJob",
+    "progress_path",
+    "race_wall_clock_s",
+    "run_race_job",
+    "run_race_jobs",
+]

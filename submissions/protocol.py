@@ -10,7 +10,8 @@ offset   type      field
 2        uint8     kind (:class:`Kind`)
 3        uint8     dtype code (:data:`DTYPES`)
 4        uint8     ndim (0–:data:`MAX_NDIM`)
-5        3 bytes   reserved, zero
+5        uint8     reserved, zero
+6        uint16    sequence number (a reply carries its request's; wraps at 2¹⁶)
 8        uint64    payload length in bytes (≤ the reader's ``max_frame``)
 16       ndim × 8  shape, uint64 each
 …        payload   ``prod(shape) × itemsize`` bytes, C order
@@ -23,8 +24,12 @@ so a hostile peer can send at most a wrong array, which the receiver then valida
 
 A session, host → worker: ``RESET`` (int64 ``[seed]``, or empty for no seed) is answered by
 ``OK``; ``ACT`` (the observation) by ``ACTION``; ``CLOSE`` ends it. The worker opens with
-``READY`` (JSON: name, format) once the policy has loaded, and answers anything with
-``ERROR`` (its exception, as text) or ``INVALID`` (an action it could not encode as numbers).
+``READY`` (JSON: name, format; sequence 0) once the policy has loaded, and answers anything
+with ``ERROR`` (its exception, as text) or ``INVALID`` (an action it could not encode as
+numbers). The host numbers its requests 1, 2, 3, … and has at most one outstanding; each
+reply carries the number of the request it answers. The host counts only the reply to its
+current request: any other (sent ahead, stale, unprompted) is a protocol violation and
+retires the policy as ``invalid`` (:mod:`submissions.remote`); it never waits for one.
 """
 
 from __future__ import annotations
@@ -44,11 +49,12 @@ from numpy.typing import NDArray
 from submissions.errors import SubmissionError
 
 MAGIC = b"SL"
-HEADER = struct.Struct("<2sBBB3xQ")  # magic, kind, dtype code, ndim, payload bytes
+HEADER = struct.Struct("<2sBBBxHQ")  # magic, kind, dtype code, ndim, sequence, payload bytes
 DIM = struct.Struct("<Q")
 MAX_NDIM = 8
 MAX_FRAME = 16 << 20  # bytes of payload: far above any observation, well below host memory
-MAX_TEXT = 4096  # bytes of an error message kept
+MAX_TEXT = 4096  # bytes of an error message kept (sent, and kept by the host: dnf_detail)
+SEQ_MODULO = 1 << 16
 
 # dtype code → numpy dtype (little-endian). A closed list: anything else is refused.
 DTYPES: dict[int, np.dtype[Any]] = {
@@ -79,12 +85,22 @@ class ProtocolError(SubmissionError):
     """A frame broke the protocol: bad magic, unknown kind or dtype, too large, truncated."""
 
 
+def cap_text(text: str, limit: int = MAX_TEXT) -> str:
+    """``text`` cut to at most ``limit`` bytes of UTF-8 (a marker says how much was cut)."""
+    data = text.encode("utf-8", "replace")
+    if len(data) <= limit:
+        return text
+    marker = f" [… {len(data) - limit} more bytes cut]".encode()
+    return data[: max(0, limit - len(marker))].decode("utf-8", "ignore") + marker.decode()
+
+
 @dataclass(frozen=True)
 class Frame:
-    """One message: its kind and its array (``shape`` and ``dtype`` from the header)."""
+    """One message: its kind, its array (``shape`` and ``dtype`` from the header), its number."""
 
     kind: Kind
     array: NDArray[Any]
+    seq: int = 0
 
     @property
     def text(self) -> str:
@@ -92,8 +108,8 @@ class Frame:
         return bytes(self.array.astype(np.uint8, copy=False)).decode("utf-8", "replace")
 
 
-def encode(kind: Kind, array: Any = None) -> bytes:
-    """The frame for ``kind`` carrying ``array`` (default: an empty uint8 array).
+def encode(kind: Kind, array: Any = None, seq: int = 0) -> bytes:
+    """The frame for ``kind`` carrying ``array`` (default: an empty uint8 array), numbered ``seq``.
 
     Raises:
         ProtocolError: the array is not numeric/bool, has more than ``MAX_NDIM`` axes, or is
@@ -113,18 +129,19 @@ def encode(kind: Kind, array: Any = None) -> bytes:
     if len(payload) > MAX_FRAME:
         raise ProtocolError(f"frame of {len(payload)} bytes exceeds {MAX_FRAME}")
     dims = b"".join(DIM.pack(n) for n in arr.shape)
-    return HEADER.pack(MAGIC, int(kind), code, arr.ndim, len(payload)) + dims + payload
+    header = HEADER.pack(MAGIC, int(kind), code, arr.ndim, seq % SEQ_MODULO, len(payload))
+    return header + dims + payload
 
 
-def encode_text(kind: Kind, text: str) -> bytes:
+def encode_text(kind: Kind, text: str, seq: int = 0) -> bytes:
     """A frame carrying ``text`` (UTF-8, cut to ``MAX_TEXT`` bytes)."""
     data = text.encode("utf-8", "replace")[:MAX_TEXT]
-    return encode(kind, np.frombuffer(data, dtype=np.uint8))
+    return encode(kind, np.frombuffer(data, dtype=np.uint8), seq)
 
 
-def encode_json(kind: Kind, value: Any) -> bytes:
+def encode_json(kind: Kind, value: Any, seq: int = 0) -> bytes:
     """A frame carrying ``value`` as JSON text."""
-    return encode_text(kind, json.dumps(value))
+    return encode_text(kind, json.dumps(value), seq)
 
 
 class FrameDecoder:
@@ -147,7 +164,8 @@ class FrameDecoder:
         """Add ``data``; return the frames it completes (possibly none).
 
         Raises:
-            ProtocolError: the stream is not a valid frame sequence.
+            ProtocolError: the stream is not a valid frame sequence (then the decoder is
+                spent: a stream that broke once is not read further).
         """
         self._buf.extend(data)
         frames: list[Frame] = []
@@ -160,29 +178,39 @@ class FrameDecoder:
     def _next(self) -> Frame | None:
         if len(self._buf) < HEADER.size:
             return None
-        kind, dtype, ndim, nbytes = parse_header(bytes(self._buf[: HEADER.size]), self.max_frame)
+        kind, dtype, ndim, seq, nbytes = parse_header(
+            bytes(self._buf[: HEADER.size]), self.max_frame
+        )
         head = HEADER.size + DIM.size * ndim
         if len(self._buf) < head:
             return None
         shape = tuple(
             DIM.unpack_from(self._buf, HEADER.size + DIM.size * i)[0] for i in range(ndim)
         )
-        if math.prod(shape) * dtype.itemsize != nbytes:
+        # No axis longer than the cap (a zero-size array cannot smuggle in an axis of 2⁶³,
+        # which numpy refuses with a ValueError), and the product must match the payload.
+        if any(n > self.max_frame for n in shape) or math.prod(shape) * dtype.itemsize != nbytes:
             raise ProtocolError(f"frame shape {shape} of {dtype} does not match {nbytes} bytes")
         if len(self._buf) < head + nbytes:
             return None
         payload = bytes(self._buf[head : head + nbytes])
         del self._buf[: head + nbytes]
-        return Frame(kind, np.frombuffer(payload, dtype=dtype).reshape(shape))
+        try:
+            array = np.frombuffer(payload, dtype=dtype).reshape(shape)
+        except ValueError as err:  # belt and braces: never let numpy's error escape
+            raise ProtocolError(f"frame shape {shape}: {err}") from None
+        return Frame(kind, array, seq)
 
 
-def parse_header(header: bytes, max_frame: int = MAX_FRAME) -> tuple[Kind, np.dtype[Any], int, int]:
-    """Check a 16-byte header; return ``(kind, dtype, ndim, payload bytes)``.
+def parse_header(
+    header: bytes, max_frame: int = MAX_FRAME
+) -> tuple[Kind, np.dtype[Any], int, int, int]:
+    """Check a 16-byte header; return ``(kind, dtype, ndim, sequence, payload bytes)``.
 
     Raises:
         ProtocolError: bad magic, kind, dtype code or ndim, or a payload over ``max_frame``.
     """
-    magic, kind, code, ndim, nbytes = HEADER.unpack(header)
+    magic, kind, code, ndim, seq, nbytes = HEADER.unpack(header)
     if magic != MAGIC:
         raise ProtocolError(f"bad frame magic {magic!r}")
     if kind not in Kind.__members__.values():
@@ -193,7 +221,7 @@ def parse_header(header: bytes, max_frame: int = MAX_FRAME) -> tuple[Kind, np.dt
         raise ProtocolError(f"frame with {ndim} axes (max {MAX_NDIM})")
     if nbytes > max_frame:
         raise ProtocolError(f"frame of {nbytes} bytes exceeds the {max_frame}-byte limit")
-    return Kind(kind), DTYPES[code], ndim, nbytes
+    return Kind(kind), DTYPES[code], ndim, seq, nbytes
 
 
 def write_all(fd: int, data: bytes) -> None:

@@ -5,34 +5,55 @@ Every uploaded policy runs in its own process tree, started by :class:`SandboxPr
 =================  ==========================================  ===============================
 concern            ``"bwrap"`` mode (the default)              ``"seccomp"`` mode (fallback)
 =================  ==========================================  ===============================
+allowed            always                                      only when the operator passed
+                                                               ``--allow-weak-sandbox`` (else
+                                                               :class:`SandboxError`: fail closed)
 filesystem         empty read-only root; binds of ``/usr``,    the host's, narrowed by Landlock
-                   the Python install, the venv, the           (read: the same paths; write:
-                   project's packages (``/app``) and the       only a private temp folder)
-                   bundle (``/submission``); a size-capped
-                   tmpfs on ``/tmp``
-network            new network namespace (no interfaces        seccomp: ``socket()`` other than
-                   but a down ``lo``) + seccomp                ``AF_UNIX`` fails (EACCES),
-                                                               ``io_uring`` refused; Landlock
-                                                               denies TCP bind/connect
-processes          pid namespace (sees only itself), cgroup    cgroup ``pids.max`` (root) or
-                   ``pids.max`` (root) or ``RLIMIT_NPROC``     ``RLIMIT_NPROC``; ``setsid`` and
-                                                               ``setpgid`` refused so the whole
-                                                               tree stays in one process group
-identity           uid/gid 65534 in a user namespace, no       the caller's uid; Landlock
-                   capabilities, new session, cleared env      scopes signals to the sandbox
+                   the Python install, the venv, the           (read: the same paths and a
+                   project's packages (``/app``) and the       read-only link tree of the bundle;
+                   bundle (``/submission``); a size-capped     write: one folder, a size-capped
+                   tmpfs on ``/tmp``                           tmpfs where it can be mounted)
+``/proc``          its own pid namespace's                     a few files of its own process
+                                                               (``status``, ``stat``...), never
+                                                               ``net/`` or another pid
+network, IPC       new network and IPC namespaces; seccomp     seccomp: every ``socket()`` and
+                   refuses every ``socket()``/``socketpair``   ``socketpair``, SysV IPC and POSIX
+                   SysV IPC and POSIX message queues           mqueue refused; Landlock denies
+                                                               TCP bind/connect too
+processes          pid namespace (sees only itself), cgroup    ONE process: ``fork``/``vfork``/
+                   ``pids.max`` (root) or ``RLIMIT_NPROC``     ``clone`` without ``CLONE_THREAD``
+                                                               refused (threads allowed);
+                                                               ``setsid``/``setpgid`` refused
+identity           uid/gid 65534 in a user namespace, no       uid/gid 65534 on the host (when
+                   capabilities, new session, cleared env      the runner is root), no groups,
+                                                               every capability dropped (bounding
+                                                               set too), ``no_new_privs``,
+                                                               cleared env; Landlock scopes
+                                                               signals to the sandbox
+host metadata      nothing of the host is bound writable       ``chmod``/``chown``/``utime``/
+                                                               ``*xattr``/``mknod`` refused;
+                                                               ``setpriority``/``sched_set*`` on
+                                                               anything but itself refused
 memory, CPU, …     ``RLIMIT_AS``/cgroup memory, CPU seconds, open files, file size, no core dumps
-killed             the process group, every pid in the cgroup, and (bwrap) the pid namespace
+lifetime           parent-death signal on the outermost process; its own folder, cgroups,
+                   process group and mount are removed by :meth:`SandboxProcess.kill`, or by
+                   :func:`reap` / :func:`reap_stale` when the host process itself died
 =================  ==========================================  ===============================
 
 Both modes also refuse ``ptrace``, ``mount``, ``unshare``/``setns``, namespace-creating
-``clone`` flags, ``bpf``, ``perf_event_open``, kernel keyrings, ``userfaultfd`` and module
-loading. :func:`sandbox_mode` picks the mode: ``bwrap`` when user namespaces work, else the
-weaker ``seccomp`` mode, with a logged warning (never silently); ``SANDBOX=seccomp`` forces
-the fallback and ``SANDBOX=bwrap`` insists on bubblewrap.
+``clone`` flags, ``bpf``, ``perf_event_open``, kernel keyrings, ``userfaultfd``, module
+loading, ``sethostname``/``setdomainname``, setting the clock and ``syslog``.
+:func:`sandbox_mode` picks the mode: ``bwrap`` when user namespaces work; else the fallback,
+but only when :func:`weak_sandbox_allowed` (the operator's ``--allow-weak-sandbox``, carried
+to job processes in ``SLIPSTREAM_ALLOW_WEAK_SANDBOX=1``); ``SANDBOX=seccomp`` forces the
+fallback and still needs that permission; ``SANDBOX=bwrap`` insists on bubblewrap. A result
+raced in the fallback says so: :func:`mode_label` gives ``"seccomp-weak"``.
 
 The cgroup caps (v1 ``pids`` and ``memory`` hierarchies under ``/sys/fs/cgroup``) are used
 where the folder is writable (root here); ``RLIMIT_NPROC`` is not enforced for root, so
-without them the process cap rests on the pid namespace (bwrap) and the deadlines.
+without them the process cap rests on the pid namespace (bwrap) or the fork ban (fallback).
+Run by a non-root user, the fallback keeps that user's uid (it cannot change it; the user has
+no capabilities to drop) and its writable folder is capped by ``RLIMIT_FSIZE`` only.
 """
 
 from __future__ import annotations
@@ -46,7 +67,6 @@ import os
 import resource
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -61,7 +81,12 @@ from submissions.errors import SandboxError
 log = logging.getLogger(__name__)
 
 BWRAP = "/usr/bin/bwrap"
-SANDBOX_UID = 65534  # "nobody" inside the user namespace
+SANDBOX_UID = 65534  # "nobody": inside bwrap's user namespace, and on the host in the fallback
+UID_ENV = "SLIPSTREAM_SANDBOX_UID"  # another unprivileged uid[:gid] for the fallback
+WEAK_ENV = "SLIPSTREAM_ALLOW_WEAK_SANDBOX"  # "1": the operator allowed the seccomp fallback
+WEAK_LABEL = "seccomp-weak"  # what a result raced in the fallback records (fits 16 chars)
+SANDBOX_PREFIX = "slipstream-sbx-"  # <tmp>/slipstream-sbx-<host pid>-<id>: one per sandbox
+JOB_PREFIX = "slipstream-job-"  # <tmp>/slipstream-job-<executor pid>-<id>: a job's scratch
 CGROUP_ROOT = Path("/sys/fs/cgroup")
 PACKAGES = ("tracks", "arena", "agents", "submissions")  # what a worker may import of ours
 APP = "/app"  # where the packages appear inside bwrap
@@ -138,32 +163,62 @@ def bwrap_works() -> bool:
     return done.returncode == 0
 
 
-def sandbox_mode() -> str:
-    """``"bwrap"`` where namespaces work, else ``"seccomp"`` (logged as a warning).
+def allow_weak_sandbox() -> None:
+    """The operator allows the seccomp fallback (``--allow-weak-sandbox``); logged.
 
-    ``SANDBOX=seccomp`` forces the fallback (for tests); ``SANDBOX=bwrap`` requires bwrap.
+    Sets ``SLIPSTREAM_ALLOW_WEAK_SANDBOX=1`` in this process's environment, so the job
+    processes it starts (and Ray tasks, see :mod:`submissions.executors`) inherit it.
+    """
+    os.environ[WEAK_ENV] = "1"
+    log.warning(
+        "--allow-weak-sandbox: where bubblewrap cannot run, untrusted policies run in the "
+        "weaker seccomp fallback; every such result is recorded as %r",
+        WEAK_LABEL,
+    )
+
+
+def weak_sandbox_allowed() -> bool:
+    """Whether the operator allowed the fallback (``SLIPSTREAM_ALLOW_WEAK_SANDBOX=1``)."""
+    return os.environ.get(WEAK_ENV, "").strip() == "1"
+
+
+def sandbox_mode() -> str:
+    """``"bwrap"`` where namespaces work, else ``"seccomp"`` if the operator allowed it.
+
+    ``SANDBOX=seccomp`` forces the fallback (for tests), which still needs the operator's
+    permission; ``SANDBOX=bwrap`` requires bwrap.
 
     Raises:
-        SandboxError: ``SANDBOX`` names no mode, or requires bwrap where it does not work.
+        SandboxError: ``SANDBOX`` names no mode, requires bwrap where it does not work, or
+            the fallback would be needed and was not allowed (fail closed).
     """
     wanted = os.environ.get("SANDBOX", "auto").strip().lower() or "auto"
     if wanted not in (*MODES, "auto"):
         raise SandboxError(f"SANDBOX={wanted!r}: expected bwrap, seccomp or auto")
-    if wanted == "seccomp":
-        return "seccomp"
-    if bwrap_works():
+    if wanted != "seccomp" and bwrap_works():
         return "bwrap"
     if wanted == "bwrap":
         raise SandboxError(f"SANDBOX=bwrap but {BWRAP} cannot create namespaces here")
+    if not weak_sandbox_allowed():
+        why = "SANDBOX=seccomp asks for" if wanted == "seccomp" else "bubblewrap cannot run here:"
+        raise SandboxError(
+            f"{why} the weaker seccomp fallback, and untrusted policies do not run in it "
+            "unless the operator passes --allow-weak-sandbox"
+        )
     _warn_fallback()
     return "seccomp"
+
+
+def mode_label(mode: str) -> str:
+    """What a result records for a sandbox ``mode``: ``"bwrap"``, or ``"seccomp-weak"``."""
+    return WEAK_LABEL if mode == "seccomp" else mode
 
 
 @functools.cache
 def _warn_fallback() -> None:
     log.warning(
-        "bubblewrap is unavailable or user namespaces are disabled: submitted policies run in "
-        "the weaker seccomp fallback (rlimits + seccomp + Landlock, no filesystem namespace)"
+        "submitted policies run in the weaker seccomp fallback (allowed by the operator): "
+        "rlimits + seccomp + Landlock + an unprivileged uid, no namespaces"
     )
 
 
@@ -201,6 +256,84 @@ _DENIED = (
 )
 
 
+_DENIED_BOTH = (  # neither a policy nor the protocol needs these (pipes need no socket)
+    "socket",
+    "socketpair",
+    "shmget",
+    "shmat",
+    "shmctl",
+    "shmdt",
+    "msgget",
+    "msgsnd",
+    "msgrcv",
+    "msgctl",
+    "semget",
+    "semop",
+    "semtimedop",
+    "semctl",
+    "mq_open",
+    "mq_unlink",
+    "mq_timedsend",
+    "mq_timedreceive",
+    "mq_notify",
+    "mq_getsetattr",
+    "sethostname",
+    "setdomainname",
+    "settimeofday",
+    "clock_settime",
+    "clock_adjtime",
+    "adjtimex",
+    "syslog",
+    "acct",
+    "quotactl",
+    "iopl",
+    "ioperm",
+    "vhangup",
+    "name_to_handle_at",
+)
+_DENIED_FALLBACK = (  # host metadata and host processes: bwrap shows the policy neither
+    "fork",
+    "vfork",
+    "setsid",
+    "setpgid",
+    "chmod",
+    "fchmod",
+    "fchmodat",
+    "fchmodat2",
+    "chown",
+    "fchown",
+    "lchown",
+    "fchownat",
+    "utime",
+    "utimes",
+    "futimesat",
+    "utimensat",
+    "setxattr",
+    "lsetxattr",
+    "fsetxattr",
+    "removexattr",
+    "lremovexattr",
+    "fremovexattr",
+    "mknod",
+    "mknodat",
+    "link",
+    "linkat",
+    "sched_setattr",
+    "ioprio_set",
+    "setuid",
+    "setreuid",
+    "setresuid",
+    "setfsuid",
+    "setgid",
+    "setregid",
+    "setresgid",
+    "setfsgid",
+    "setgroups",
+    "capset",
+)
+_CLONE_THREAD = 0x00010000
+
+
 @functools.cache
 def seccomp_filter(mode: str) -> bytes:
     """The seccomp BPF program for ``mode`` (built with libseccomp on the trusted side).
@@ -213,19 +346,31 @@ def seccomp_filter(mode: str) -> bytes:
     except (ImportError, OSError) as err:  # OSError: the libseccomp shared library is missing
         raise SandboxError(f"the sandbox needs libseccomp (pyseccomp): {err}") from err
     filt = sc.SyscallFilter(sc.ALLOW)
-    filt.add_rule(sc.ERRNO(errno.EACCES), "socket", sc.Arg(0, sc.NE, socket.AF_UNIX))
-    for name in _DENIED:
-        filt.add_rule(sc.ERRNO(errno.EPERM), name)
+    denied = (*_DENIED, *_DENIED_BOTH, *(_DENIED_FALLBACK if mode == "seccomp" else ()))
+    for name in denied:
+        _deny(filt, sc.ERRNO(errno.EACCES if "socket" in name else errno.EPERM), name)
     for flag in _CLONE_NEW:
         filt.add_rule(sc.ERRNO(errno.EPERM), "clone", sc.Arg(0, sc.MASKED_EQ, flag, flag))
     filt.add_rule(sc.ERRNO(errno.ENOSYS), "clone3")  # flags behind a pointer: make libc use clone
-    if mode == "seccomp":  # no pid namespace: keep the tree in one process group
-        filt.add_rule(sc.ERRNO(errno.EPERM), "setsid")
-        filt.add_rule(sc.ERRNO(errno.EPERM), "setpgid")
+    if mode == "seccomp":
+        # One process: threads (CLONE_THREAD) only, so the parent-death signal ends all of it.
+        eperm = sc.ERRNO(errno.EPERM)
+        filt.add_rule(eperm, "clone", sc.Arg(0, sc.MASKED_EQ, _CLONE_THREAD, 0))
+        # Scheduling and priority of itself only (pid/who 0); never of a host process.
+        for name in ("sched_setscheduler", "sched_setparam", "sched_setaffinity"):
+            filt.add_rule(eperm, name, sc.Arg(0, sc.NE, 0))
+        filt.add_rule(eperm, "setpriority", sc.Arg(1, sc.NE, 0))
     with tempfile.TemporaryFile() as fh:
         filt.export_bpf(fh)
         fh.seek(0)
         return fh.read()
+
+
+def _deny(filt: object, action: object, name: str) -> None:
+    try:
+        filt.add_rule(action, name)  # type: ignore[attr-defined]
+    except (RuntimeError, ValueError, OSError):  # a syscall this architecture does not have
+        log.debug("seccomp: no syscall %s on this architecture", name)
 
 
 def _libc() -> ctypes.CDLL:
@@ -363,6 +508,12 @@ class CgroupCaps:
             caps.dirs.append(path)
         return caps
 
+    @classmethod
+    def existing(cls, name: str) -> CgroupCaps:
+        """The folders ``slipstream/<name>`` that exist (to reap a sandbox whose host died)."""
+        found = (CGROUP_ROOT / h / "slipstream" / name for h in ("pids", "memory"))
+        return cls([d for d in found if d.is_dir()])
+
     @property
     def procs_files(self) -> list[str]:
         """The ``cgroup.procs`` files a new process writes its pid to."""
@@ -448,22 +599,138 @@ def bwrap_command(
     return [*cmd, "--root", "/submission", *worker_args]
 
 
-def fallback_paths(bundle_root: Path, tmp: Path) -> tuple[list[str], list[str]]:
+def fallback_paths(bundle_root: Path, work: Path, app: Path) -> tuple[list[str], list[str]]:
     """What the seccomp-mode worker may read and write (Landlock rules): ``(read, write)``."""
     read = ["/usr", "/lib", "/lib64", "/bin", "/sys/devices/system/cpu", *python_paths()]
-    read += [*package_dirs().values(), str(bundle_root), "/dev/urandom"]
-    return read, [str(tmp), "/dev/null"]
+    read += [*package_dirs().values(), str(app), str(bundle_root), "/dev/urandom"]
+    return read, [str(work), "/dev/null"]
 
 
-def _preexec(limits: SandboxLimits, procs_files: list[str]) -> Callable[[], None]:
-    """Runs in the child between fork and exec: join the cgroups, set the rlimits."""
+@dataclass(frozen=True)
+class Identity:
+    """Who the fallback runs as (root runner only).
+
+    Attributes:
+        uid: real and effective uid (65534, or ``SLIPSTREAM_SANDBOX_UID``).
+        gid: real, effective and file-system gid; no supplementary groups.
+        fs_root: keep the *file-system* uid 0 (saved uid 0, set*id calls then refused by
+            seccomp, no capabilities at all) because the interpreter lies under a folder
+            only root may traverse (``/root/.pyenv``); reads are still only Landlock's list
+            and writes only the work folder. False: the file-system uid is ``uid`` too.
+    """
+
+    uid: int
+    gid: int
+    fs_root: bool
+
+    @property
+    def files_uid(self) -> int:
+        """The owner its work folder needs."""
+        return 0 if self.fs_root else self.uid
+
+
+def fallback_identity() -> Identity | None:
+    """The identity the fallback drops to (:class:`Identity`); None when the runner is not
+    root (it cannot change its uid, and has no capabilities to drop).
+
+    Raises:
+        SandboxError: ``SLIPSTREAM_SANDBOX_UID`` is malformed or names uid/gid 0.
+    """
+    if os.geteuid() != 0:
+        return None
+    raw = os.environ.get(UID_ENV, "").strip()
+    uid = gid = SANDBOX_UID
+    if raw:
+        try:
+            first, _, second = raw.partition(":")
+            uid, gid = int(first), int(second or first)
+        except ValueError:
+            raise SandboxError(f"{UID_ENV}={raw!r}: expected uid or uid:gid") from None
+        if min(uid, gid) <= 0:
+            raise SandboxError(f"{UID_ENV}={raw!r}: the sandbox never runs as uid or gid 0")
+    paths = [os.path.realpath(sys.executable), *python_paths(), *package_dirs().values()]
+    return Identity(uid, gid, fs_root=not all(_others_can_reach(p) for p in paths))
+
+
+def _others_can_reach(path: str) -> bool:
+    """Whether every folder above ``path`` lets other users through (``o+x``)."""
+    current = Path(path)
+    for folder in [*current.parents, current]:
+        try:
+            mode = folder.stat().st_mode
+        except OSError:
+            return False
+        if folder != current and not mode & 0o001:
+            return False
+    return True
+
+
+def _cap_last() -> int:
+    try:
+        return int(Path("/proc/sys/kernel/cap_last_cap").read_text())
+    except (OSError, ValueError):
+        return 63
+
+
+class _CapHeader(ctypes.Structure):
+    _fields_ = [("version", ctypes.c_uint32), ("pid", ctypes.c_int)]
+
+
+class _CapData(ctypes.Structure):
+    _fields_ = [
+        ("effective", ctypes.c_uint32),
+        ("permitted", ctypes.c_uint32),
+        ("inheritable", ctypes.c_uint32),
+    ]
+
+
+_PR_SET_PDEATHSIG, _PR_CAPBSET_DROP, _PR_SET_NO_NEW_PRIVS = 1, 24, 38
+_KEPT_FOR_DROP = (6, 7, 8)  # CAP_SETGID, CAP_SETUID, CAP_SETPCAP: dropped by drop_identity
+
+
+def drop_identity(uid: int) -> None:
+    """In the fallback's worker, after exec (``Identity.fs_root``): become ``uid`` with the
+    file-system uid 0 and no capability at all (the last three leave the bounding set).
+
+    An exec resets the saved and file-system uids to the effective one, so this part of
+    the drop cannot happen before it.
+    """
+    libc = _libc()
+    for cap in _KEPT_FOR_DROP:  # CAP_SETPCAP last: it is what allows the drops
+        _check(libc.prctl(_PR_CAPBSET_DROP, cap, 0, 0, 0), "PR_CAPBSET_DROP")
+    os.setresuid(uid, uid, 0)  # clears the effective set; the saved uid 0 allows setfsuid(0)
+    header = _CapHeader(0x20080522, 0)
+    _check(libc.capset(ctypes.byref(header), (_CapData * 2)()), "capset")
+    libc.setfsuid(0)  # no capability comes back: the permitted set is empty
+    if libc.setfsuid(-1) != 0:  # setfsuid(-1) fails and returns the current fsuid
+        raise SandboxError("could not keep the file-system uid")
+
+
+def _preexec(
+    limits: SandboxLimits, procs_files: list[str], identity: Identity | None
+) -> Callable[[], None]:
+    """Runs in the child between fork and exec (system calls only, prepared here).
+
+    Joins the cgroups, sets the rlimits; with ``identity`` (fallback run by root) drops the
+    bounding set, the groups, the uid/gid and then every remaining capability; always sets
+    the parent-death signal last (a credential change clears it) and ``no_new_privs``.
+    """
     rlimits = [
         (resource.RLIMIT_AS, limits.memory_mb * _MIB),
         (resource.RLIMIT_NOFILE, limits.open_files),
         (resource.RLIMIT_FSIZE, limits.file_size_mb * _MIB),
         (resource.RLIMIT_NPROC, limits.max_processes),  # not enforced for root: cgroup does it
         (resource.RLIMIT_CORE, 0),
+        (resource.RLIMIT_RTPRIO, 0),  # no SCHED_FIFO/RR
+        (resource.RLIMIT_NICE, 0),  # no raising its priority
     ]
+    libc = _libc()
+    prctl = libc.prctl
+    capset = libc.capset
+    header = _CapHeader(0x20080522, 0)  # _LINUX_CAPABILITY_VERSION_3
+    nothing = (_CapData * 2)()
+    caps = range(_cap_last() + 1)
+    parent = os.getpid()
 
     def run() -> None:
         for path in procs_files:
@@ -475,6 +742,21 @@ def _preexec(limits: SandboxLimits, procs_files: list[str]) -> Callable[[], None
         for which, value in rlimits:
             resource.setrlimit(which, (value, value))
         resource.setrlimit(resource.RLIMIT_CPU, (limits.cpu_seconds, limits.cpu_seconds + 5))
+        if identity is not None:
+            for cap in caps:  # the fs_root case keeps three, for drop_identity after exec
+                if not identity.fs_root or cap not in _KEPT_FOR_DROP:
+                    prctl(_PR_CAPBSET_DROP, cap, 0, 0, 0)
+            os.setgroups([])
+            gid, uid = identity.gid, identity.uid
+            os.setresgid(gid, gid, gid)
+            if not identity.fs_root:
+                os.setresuid(uid, uid, uid)  # clears the permitted and effective sets
+                if capset(ctypes.byref(header), nothing) != 0:  # and the inheritable one
+                    os._exit(126)
+        prctl(_PR_SET_NO_NEW_PRIVS, 1, 0, 0, 0)
+        prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0)
+        if os.getppid() != parent:  # the host died before the line above
+            os._exit(1)
 
     return run
 
@@ -482,8 +764,147 @@ def _preexec(limits: SandboxLimits, procs_files: list[str]) -> Callable[[], None
 # ---- the process -------------------------------------------------------------------------
 
 
+def _owner_alive(folder: Path) -> bool:
+    """Whether the host process named in ``slipstream-...-<pid>-...`` still runs."""
+    try:
+        pid = int(folder.name.split("-")[2])
+    except (IndexError, ValueError):
+        return True  # not ours to judge
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _unmount(path: Path) -> None:
+    """Lazily unmount ``path`` if something is mounted there (the fallback's tmpfs)."""
+    target = str(path)
+    try:
+        mounts = Path("/proc/self/mounts").read_text().splitlines()
+    except OSError:
+        return
+    if any(line.split(" ")[1:2] == [target] for line in mounts):
+        _libc().umount2(target.encode(), 2)  # MNT_DETACH
+
+
+def _kill_group(folder: Path) -> None:
+    """SIGKILL what is left of the process group recorded in ``folder/pgid``: only members
+    with the recorded uid and the sandbox's id in their command line (a reused pgid's
+    processes are spared)."""
+    try:
+        pgid, uid = (int(x) for x in (folder / "pgid").read_text().split())
+    except (OSError, ValueError):
+        return
+    marker = folder.name.rsplit("-", 1)[-1].encode()
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+            status = (entry / "status").read_text()
+            cmdline = (entry / "cmdline").read_bytes()
+            owner = int(status.split("\nUid:", 1)[1].split()[0])  # real uid (not /proc's owner)
+        except (OSError, IndexError, ValueError):
+            continue
+        fields = stat[stat.rindex(")") + 2 :].split()
+        if int(fields[2]) == pgid and owner == uid and marker in cmdline:
+            with contextlib.suppress(ProcessLookupError, PermissionError):
+                os.kill(int(entry.name), signal.SIGKILL)
+
+
+def reap(folder: Path) -> None:
+    """Remove everything of one sandbox given its folder: processes, cgroups, mount, files.
+
+    For a sandbox whose host process died without :meth:`SandboxProcess.kill` (SIGKILL,
+    OOM). The folder is ``<tmp>/slipstream-sbx-<host pid>-<id>``.
+    """
+    _kill_group(folder)
+    cgroups = CgroupCaps.existing(folder.name.rsplit("-", 1)[-1])
+    cgroups.kill_all()
+    cgroups.remove()
+    _unmount(folder / "work")
+    shutil.rmtree(folder, ignore_errors=True)
+
+
+def reap_tree(root: Path) -> int:
+    """:func:`reap` every sandbox folder under ``root`` (a job's scratch folder), then
+    remove ``root`` itself; returns how many sandboxes were reaped."""
+    found = sorted(root.glob(f"{SANDBOX_PREFIX}*")) if root.is_dir() else []
+    for folder in found:
+        reap(folder)
+    for mount in _mounts_under(root):
+        _unmount(Path(mount))
+    shutil.rmtree(root, ignore_errors=True)
+    return len(found)
+
+
+def _mounts_under(root: Path) -> list[str]:
+    try:
+        lines = Path("/proc/self/mounts").read_text().splitlines()
+    except OSError:
+        return []
+    prefix = f"{root}/"
+    return [m for line in lines if (m := line.split(" ")[1]).startswith(prefix)]
+
+
+def reap_stale(tmp: Path | None = None) -> int:
+    """Reap sandbox and job folders in ``tmp`` whose host process is gone; returns how many.
+
+    Covers a runner that was SIGKILLed: the next one to start cleans up after it.
+    """
+    base = Path(tmp or tempfile.gettempdir())
+    count = 0
+    for folder in [*base.glob(f"{SANDBOX_PREFIX}*"), *base.glob(f"{JOB_PREFIX}*")]:
+        if not folder.is_dir() or _owner_alive(folder):
+            continue
+        if folder.name.startswith(JOB_PREFIX):
+            reap_tree(folder)
+        else:
+            reap(folder)
+        count += 1
+    return count
+
+
+def _link_tree(src: Path, dst: Path) -> None:
+    """A read-only copy of the bundle the fallback's uid can reach (hard links where
+    possible: the job's own extraction folder is private to root)."""
+
+    def link_or_copy(a: str, b: str) -> None:
+        try:
+            os.link(a, b)
+        except OSError:
+            shutil.copy2(a, b)
+
+    shutil.copytree(src, dst, symlinks=True, copy_function=link_or_copy)
+    for folder, _dirs, files in os.walk(dst):
+        os.chmod(folder, 0o755)
+        for name in files:
+            path = os.path.join(folder, name)
+            if not os.path.islink(path):
+                os.chmod(path, 0o644)
+
+
+def _mount_tmpfs(path: Path, size_mb: int, owner: tuple[int, int] | None) -> bool:
+    """A size-capped tmpfs on ``path`` (root only); False where it cannot be mounted."""
+    options = f"size={size_mb * _MIB},nr_inodes=4096,mode=0700"
+    if owner is not None:
+        options += f",uid={owner[0]},gid={owner[1]}"
+    flags = 0x2 | 0x4 | 0x8  # MS_NOSUID | MS_NODEV | MS_NOEXEC
+    ret = _libc().mount(b"slipstream", str(path).encode(), b"tmpfs", flags, options.encode())
+    return ret == 0
+
+
 class SandboxProcess:
     """One sandboxed worker process tree; :meth:`kill` ends all of it.
+
+    Each sandbox has a folder ``<tmp>/slipstream-sbx-<host pid>-<id>`` (root-owned, 0711)
+    holding its process group id, and in the fallback the bundle's read-only link tree
+    (``bundle/``), the package links (``.app/``) and its one writable folder (``work/``,
+    a ``tmpfs_mb`` tmpfs where it can be mounted). :func:`reap` removes all of it from
+    the folder alone.
 
     Args:
         worker_args: arguments for ``submissions.worker`` (the protocol's file descriptors…).
@@ -492,6 +913,11 @@ class SandboxProcess:
         pass_fds: the descriptors the worker inherits (the protocol pipes).
         output_fd: where the worker's stdout and stderr go (a pipe the host drains).
         mode: ``"bwrap"`` or ``"seccomp"`` (default: :func:`sandbox_mode`).
+
+    Attributes:
+        folder: the sandbox's folder (None once removed).
+        identity: the ``(uid, gid)`` of the fallback (None in bwrap mode or as non-root).
+        quota: how the writable folder is capped: ``"tmpfs"`` or ``"fsize"``.
 
     Raises:
         SandboxError: the process could not be started.
@@ -510,11 +936,17 @@ class SandboxProcess:
         self.mode = mode or sandbox_mode()
         self.id = uuid.uuid4().hex[:12]
         self.limits = limits
+        self.identity = fallback_identity() if self.mode == "seccomp" else None
+        self.quota = "tmpfs" if self.mode == "bwrap" else "fsize"
+        self.folder: Path | None = Path(tempfile.gettempdir()) / (
+            f"{SANDBOX_PREFIX}{os.getpid()}-{self.id}"
+        )
+        self.folder.mkdir(mode=0o711)
         self.cgroups = CgroupCaps.create(self.id, limits)
-        self.tmp: Path | None = None
-        program = seccomp_filter(self.mode)
-        filter_fd = os.memfd_create("slipstream-seccomp", os.MFD_CLOEXEC)
+        filter_fd = -1
         try:
+            program = seccomp_filter(self.mode)
+            filter_fd = os.memfd_create("slipstream-seccomp", os.MFD_CLOEXEC)
             os.write(filter_fd, program)
             os.lseek(filter_fd, 0, os.SEEK_SET)
             args = [*worker_args, "--sandbox-id", self.id, "--mode", self.mode]
@@ -523,10 +955,10 @@ class SandboxProcess:
                 env: dict[str, str] = {}
                 cwd = "/"
             else:
-                self.tmp = Path(tempfile.mkdtemp(prefix=f"slipstream-sbx-{self.id}-"))
-                cmd = self._fallback_command(args, bundle_root, self.tmp, filter_fd)
-                env = self._fallback_env(self.tmp)
-                cwd = str(self.tmp)
+                work = self._prepare_fallback(bundle_root)
+                cmd = self._fallback_command(args, filter_fd)
+                env = self._fallback_env(work)
+                cwd = str(work)
             self.proc = subprocess.Popen(
                 cmd,
                 stdin=subprocess.DEVNULL,
@@ -536,34 +968,57 @@ class SandboxProcess:
                 start_new_session=True,
                 env=env,
                 cwd=cwd,
-                preexec_fn=_preexec(limits, self.cgroups.procs_files),  # noqa: PLW1509 - os calls only
+                preexec_fn=_preexec(limits, self.cgroups.procs_files, self.identity),  # noqa: PLW1509 - os calls only
             )
-        except (OSError, subprocess.SubprocessError) as err:
+            uid = self.identity.uid if self.identity is not None else os.geteuid()
+            (self.folder / "pgid").write_text(f"{self.proc.pid} {uid}\n")
+        except (OSError, subprocess.SubprocessError, shutil.Error) as err:
             self._cleanup()
             raise SandboxError(f"could not start the sandbox ({self.mode}): {err}") from err
+        except BaseException:
+            self._cleanup()
+            raise
         finally:
-            os.close(filter_fd)
+            if filter_fd >= 0:
+                os.close(filter_fd)
 
-    def _fallback_command(
-        self, args: list[str], root: Path, tmp: Path, filter_fd: int
-    ) -> list[str]:
-        app = tmp / ".app"  # the packages, as links: Python lists this folder, not the project
-        app.mkdir()
+    def _prepare_fallback(self, root: Path) -> Path:
+        """The fallback's folders: ``bundle/`` (read-only), ``.app/``, ``work/`` (writable)."""
+        assert self.folder is not None
+        _link_tree(root, self.folder / "bundle")
+        app = self.folder / ".app"  # the packages, as links: Python lists this, not the project
+        app.mkdir(mode=0o755)
         for name, path in package_dirs().items():
             (app / name).symlink_to(path)
-        read, write = fallback_paths(root, tmp)
+        work = self.folder / "work"
+        work.mkdir(mode=0o700)
+        owner = None
+        if self.identity is not None:
+            owner = (self.identity.files_uid, self.identity.gid)
+        if _mount_tmpfs(work, self.limits.tmpfs_mb, owner):
+            self.quota = "tmpfs"
+        elif owner is not None:
+            os.chown(work, *owner)
+        return work
+
+    def _fallback_command(self, args: list[str], filter_fd: int) -> list[str]:
+        assert self.folder is not None
+        root, work, app = self.folder / "bundle", self.folder / "work", self.folder / ".app"
+        read, write = fallback_paths(root, work, app)
         cmd = [sys.executable, "-B", "-m", "submissions.worker", "--root", str(root), *args]
         cmd += ["--seccomp-fd", str(filter_fd)]
+        if self.identity is not None and self.identity.fs_root:
+            cmd += ["--drop-uid", str(self.identity.uid)]
         for path in read:
             cmd += ["--read", path]
         for path in write:
             cmd += ["--write", path]
         return cmd
 
-    @staticmethod
-    def _fallback_env(tmp: Path) -> dict[str, str]:
-        env = {"PATH": "/usr/bin:/bin", "HOME": str(tmp), "TMPDIR": str(tmp)}
-        env |= {"PYTHONPATH": str(tmp / ".app"), "PYTHONNOUSERSITE": "1"}
+    def _fallback_env(self, work: Path) -> dict[str, str]:
+        assert self.folder is not None
+        env = {"PATH": "/usr/bin:/bin", "HOME": str(work), "TMPDIR": str(work)}
+        env |= {"PYTHONPATH": str(self.folder / ".app"), "PYTHONNOUSERSITE": "1"}
         return env | {"PYTHONDONTWRITEBYTECODE": "1", "LANG": "C.UTF-8"} | THREAD_ENV
 
     @property
@@ -583,7 +1038,8 @@ class SandboxProcess:
             return None
 
     def kill(self) -> None:
-        """SIGKILL the whole tree (group, cgroups; bwrap takes its pid namespace down too)."""
+        """SIGKILL the whole tree (group, cgroups; bwrap takes its pid namespace down too),
+        then remove its cgroups and folder (unmounting its tmpfs)."""
         with contextlib.suppress(ProcessLookupError, PermissionError):
             os.killpg(self.proc.pid, signal.SIGKILL)
         self.cgroups.kill_all()
@@ -592,7 +1048,9 @@ class SandboxProcess:
         self._cleanup()
 
     def _cleanup(self) -> None:
+        self.cgroups.kill_all()
         self.cgroups.remove()
-        if self.tmp is not None:
-            shutil.rmtree(self.tmp, ignore_errors=True)
-            self.tmp = None
+        if self.folder is not None:
+            _unmount(self.folder / "work")
+            shutil.rmtree(self.folder, ignore_errors=True)
+            self.folder = None

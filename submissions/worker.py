@@ -53,7 +53,7 @@ from submissions.protocol import (
     read_frame,
     write_all,
 )
-from submissions.sandbox import apply_seccomp, landlock_restrict
+from submissions.sandbox import apply_seccomp, drop_identity, landlock_restrict
 
 
 def _args(argv: list[str] | None) -> argparse.Namespace:
@@ -65,25 +65,40 @@ def _args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--mode", choices=("bwrap", "seccomp"), required=True)
     parser.add_argument("--sandbox-id", default="")
     parser.add_argument("--seccomp-fd", type=int, default=-1)
+    parser.add_argument("--drop-uid", type=int, default=-1, help="see sandbox.drop_identity")
     parser.add_argument("--read", action="append", default=[])
     parser.add_argument("--write", action="append", default=[])
     return parser.parse_args(argv)
 
 
+PROC_FILES = ("status", "stat", "statm", "limits", "maps")  # of itself; never net/ or fd/
+
+
 def confine(args: argparse.Namespace) -> int:
     """Seccomp mode: confine this process before anything of the bundle is read.
+
+    The host already dropped its groups, gid, capabilities (and, where the interpreter is
+    reachable by other users, its uid) and set ``no_new_privs`` and the parent-death signal
+    (:func:`submissions.sandbox._preexec`); here: the rest of the uid drop where it must
+    follow the exec (``--drop-uid``, :func:`submissions.sandbox.drop_identity`), the
+    parent-death signal again (a credential change clears it), Landlock (reads: the given
+    paths and a few files of its own ``/proc/<pid>``, never ``/proc/<pid>/net`` nor another
+    process; writes: its work folder), then the seccomp filter handed over by the host.
 
     Returns:
         The Landlock ABI applied (0: none; always 0 in bwrap mode, which needs none).
     """
     if args.mode != "seccomp":
         return 0
-    ctypes.CDLL(None).prctl(1, int(signal.SIGKILL), 0, 0, 0)  # PR_SET_PDEATHSIG
+    if args.drop_uid > 0:
+        drop_identity(args.drop_uid)
+    ctypes.CDLL(None).prctl(1, int(signal.SIGKILL), 0, 0, 0)  # PR_SET_PDEATHSIG (after it)
     if os.getppid() == 1:  # the host died before the line above
         sys.exit(1)
     with os.fdopen(args.seccomp_fd, "rb") as fh:
         program = fh.read()
-    read = [*args.read, f"/proc/{os.getpid()}"]
+    own = f"/proc/{os.getpid()}"
+    read = [*args.read, *(f"{own}/{name}" for name in PROC_FILES)]
     abi = landlock_restrict(read, args.write)
     apply_seccomp(program)
     return abi
@@ -132,7 +147,8 @@ def _describe(err: BaseException) -> str:
 
 
 def serve(policy: Any, fd_in: int, fd_out: int) -> None:
-    """Answer RESET / ACT frames until CLOSE or end of input."""
+    """Answer RESET / ACT frames until CLOSE or end of input; each reply carries its
+    request's sequence number (the host counts no other)."""
     decoder = FrameDecoder()
     while (frame := read_frame(fd_in, decoder)) is not None:
         if frame.kind == Kind.CLOSE:
@@ -143,25 +159,25 @@ def serve(policy: Any, fd_in: int, fd_out: int) -> None:
                 reset = getattr(policy, "reset", None)
                 if reset is not None:
                     reset(seed)
-                reply = encode(Kind.OK)
+                reply = encode(Kind.OK, seq=frame.seq)
             elif frame.kind == Kind.ACT:
-                reply = _action_frame(policy.act(frame.array))
+                reply = _action_frame(policy.act(frame.array), frame.seq)
             else:
                 raise ProtocolError(f"unexpected {frame.kind.name} frame")
         except Exception as err:  # the policy's bug: report it, the host decides
             traceback.print_exc()
-            reply = encode_text(Kind.ERROR, _describe(err))
+            reply = encode_text(Kind.ERROR, _describe(err), frame.seq)
         write_all(fd_out, reply)
 
 
-def _action_frame(action: Any) -> bytes:
+def _action_frame(action: Any, seq: int) -> bytes:
     try:
         arr = np.asarray(action)
         if arr.dtype.kind not in "fiu":
             raise ProtocolError(f"action of type {type(action).__name__} / dtype {arr.dtype}")
-        return encode(Kind.ACTION, arr)
+        return encode(Kind.ACTION, arr, seq)
     except (ProtocolError, TypeError, ValueError, OverflowError) as err:
-        return encode_text(Kind.INVALID, f"not a numeric action: {err}")
+        return encode_text(Kind.INVALID, f"not a numeric action: {err}", seq)
 
 
 def main(argv: list[str] | None = None) -> int:

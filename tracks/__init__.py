@@ -10,13 +10,14 @@ True
 """
 
 from tracks.errors import SlipstreamError, TrackError
-from tracks.geometry import Projection, Track
+from tracks.geometry import Projection, Raceline, Track
 from tracks.laps import LapCounter
 from tracks.library import list_tracks, load_track
 
 __all__ = [
     "LapCounter",
     "Projection",
+    "Raceline",
     "SlipstreamError",
     "Track",
     "TrackError",

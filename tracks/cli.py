@@ -5,6 +5,7 @@ Subcommands::
     slipstream tracks list [--json | --names]
     slipstream tracks show NAME [--out track.png] [--checkpoints N] [--title T] [--json]
     slipstream tracks import FILE [--format f1tenth|deepracer|json] [--name NAME] --out PATH
+                             [--scale F] [--width M | --max-width M] [--raceline CSV]
                              [--force] [--json]
 
 ``NAME`` is anything :func:`tracks.load_track` takes: a built-in name, a path to a track file,
@@ -27,7 +28,9 @@ from tracks.errors import TrackError
 from tracks.formats import (
     FORMATS,
     TRACK_SCHEMA,
+    ImportOptions,
     TrackFormat,
+    read_raceline,
     read_track_file,
     track_to_dict,
     write_json,
@@ -91,6 +94,27 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     )
     p_import.add_argument("--name", default=None, help="track name (default: the file's stem)")
     p_import.add_argument("--out", type=Path, required=True, help="JSON file to write")
+    p_import.add_argument(
+        "--scale",
+        type=float,
+        default=1.0,
+        metavar="F",
+        help="multiply coordinates and widths by F (e.g. 0.1 for a 1/10 model; default 1)",
+    )
+    widths = p_import.add_mutually_exclusive_group()
+    widths.add_argument(
+        "--width", type=float, default=None, metavar="M", help="constant half-width, m"
+    )
+    widths.add_argument(
+        "--max-width", type=float, default=None, metavar="M", help="cap the half-widths at M m"
+    )
+    p_import.add_argument(
+        "--raceline",
+        type=Path,
+        default=None,
+        metavar="CSV",
+        help="F1TENTH race line (s_m; x_m; y_m; psi_rad; kappa_radpm; vx_mps; ax_mps2) to keep",
+    )
     p_import.add_argument("--force", action="store_true", help="overwrite an existing --out")
     p_import.add_argument("--json", action="store_true", help="print the summary as JSON")
     p_import.set_defaults(handler=cmd_import)
@@ -188,7 +212,10 @@ def cmd_import(args: argparse.Namespace) -> int:
     if out.exists() and not out.is_file():
         raise TrackError(f"{out} is not a file")
     fmt: TrackFormat | None = args.format
-    track = read_track_file(args.file, fmt, args.name)
+    options = ImportOptions(scale=args.scale, width=args.width, max_width=args.max_width)
+    track = read_track_file(args.file, fmt, args.name, options)
+    if args.raceline is not None:
+        track.raceline = read_raceline(args.raceline, scale=args.scale)
     try:  # e.g. a --name longer than the schema allows: refuse before writing anything
         jsonschema.validate(track_to_dict(track), TRACK_SCHEMA)
     except jsonschema.ValidationError as err:
@@ -201,6 +228,8 @@ def cmd_import(args: argparse.Namespace) -> int:
         raise TrackError(f"cannot write {out}: {err.strerror or err}") from None
 
     summary = {**track_summary(track), "points": track.n_points, "source": str(args.file)}
+    summary["raceline"] = track.raceline is not None
+    summary["notes"] = list(track.import_notes)
     summary["out"] = str(out)
     if args.json:
         print(json.dumps(summary))
@@ -211,4 +240,6 @@ def cmd_import(args: argparse.Namespace) -> int:
             f"{summary['max_width_m']:.2f} m, {track.n_corners} corners, "
             f"{track.orientation} -> {out}"
         )
+        for note in track.import_notes:
+            print(f"  {note}")
     return 0

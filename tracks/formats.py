@@ -11,14 +11,22 @@ Our JSON (``schema_version`` 1)::
       "width_left": 1.5 | [...],        # half-widths relative to the stored order, m
       "width_right": 1.5 | [...],
       "start": {"s": 0.0},              # start line, m along the curve from the first point
-      "direction": "ccw" | "cw"         # the driving direction seen from above
+      "direction": "ccw" | "cw",        # the driving direction seen from above
+      "resampled": true,                # optional: the points are a fitted centre line
+                                        # (what we write); read as is, not fitted again
+      "waypoints": [[x, y], ...],       # optional: the source file's own centre points
+      "raceline": {"points": [[x, y], ...], "speed": [...]}   # optional reference line, m/s
     }
 
 If ``direction`` disagrees with the orientation of the stored points, the points are read in
 reverse (and left/right swapped), so a file can store a circuit either way round. F1TENTH CSV
 files carry ``x_m, y_m, w_tr_right_m, w_tr_left_m`` per row in driving order. DeepRacer
 ``.npy`` files are (N, 6) arrays ``[centre_x, centre_y, inner_x, inner_y, outer_x, outer_y]``;
-inner/outer become left/right according to the driving direction (anticlockwise: inner is left).
+which border column is left is read from the geometry, and the half-widths are measured to the
+file's border polylines. F1TENTH race lines (``s_m; x_m; y_m; psi_rad; kappa_radpm; vx_mps;
+ax_mps2``) are read by :func:`read_raceline`. Importers of outside files drop repeated rows
+and fit too-wide half-widths to the bends (:func:`tracks.validation.fit_widths`) instead of
+refusing them; ``track.import_notes`` says what they changed.
 """
 
 from __future__ import annotations
@@ -27,20 +35,28 @@ import csv
 import io
 import json
 import zipfile
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
 import jsonschema
 import numpy as np
+from numpy.typing import NDArray
 
 from tracks.errors import TrackError
-from tracks.geometry import Track, signed_area
+from tracks.geometry import FloatArray, Raceline, Track, border_widths, signed_area, tightened_bends
+from tracks.validation import fit_widths, validate_track
 
 SCHEMA_VERSION = 1
 TrackFormat = Literal["json", "f1tenth", "deepracer"]
 FORMATS: tuple[TrackFormat, ...] = ("json", "f1tenth", "deepracer")
 MAX_FILE_BYTES = 20 * 1024 * 1024  # a track file larger than this is not a track
 
+_NUMBER = {"type": "number"}
+_POINTS = {
+    "type": "array",
+    "items": {"type": "array", "items": _NUMBER, "minItems": 2, "maxItems": 2},
+}
 _WIDTH = {"oneOf": [{"type": "number"}, {"type": "array", "items": {"type": "number"}}]}
 TRACK_SCHEMA: dict[str, Any] = {
     "$schema": "https://json-schema.org/draft/2020-12/schema",
@@ -64,6 +80,14 @@ TRACK_SCHEMA: dict[str, Any] = {
             "additionalProperties": False,
         },
         "direction": {"enum": ["ccw", "cw"]},
+        "resampled": {"type": "boolean"},
+        "waypoints": _POINTS,
+        "raceline": {
+            "type": "object",
+            "required": ["points", "speed"],
+            "properties": {"points": _POINTS, "speed": {"type": "array", "items": _NUMBER}},
+            "additionalProperties": False,
+        },
     },
     "additionalProperties": False,
 }
@@ -89,14 +113,27 @@ def track_from_dict(data: Any, *, source: str = "track") -> Track:
     wr = np.asarray(data["width_right"], dtype=np.float64)
     start_s = float(data.get("start", {}).get("s", 0.0))
     ccw = data.get("direction", "ccw") == "ccw"
-    if len(pts) >= 3 and np.isfinite(pts).all() and (signed_area(pts) > 0) != ccw:
-        # Stored the other way round: drive it reversed, keeping the first point first.
-        order = np.roll(np.arange(len(pts))[::-1], 1)
-        pts = pts[order]
-        same = (len(pts),)
-        wl, wr = (wr[order] if wr.shape == same else wr), (wl[order] if wl.shape == same else wl)
-        start_s = -start_s
+    waypoints = data.get("waypoints")
+    resampled = bool(data.get("resampled", False))
+    raceline = None
     try:
+        if "raceline" in data:
+            raceline = Raceline(
+                np.asarray(data["raceline"]["points"], dtype=np.float64).reshape(-1, 2),
+                np.asarray(data["raceline"]["speed"], dtype=np.float64),
+            )
+        if len(pts) >= 3 and np.isfinite(pts).all() and (signed_area(pts) > 0) != ccw:
+            # Stored the other way round: drive it reversed, keeping the first point first.
+            order = np.roll(np.arange(len(pts))[::-1], 1)
+            pts = pts[order]
+            same = (len(pts),)
+            wl, wr = (
+                (wr[order] if wr.shape == same else wr),
+                (wl[order] if wl.shape == same else wl),
+            )
+            start_s = -start_s
+            raceline = raceline.reversed() if raceline is not None else None
+            waypoints = waypoints[::-1] if waypoints is not None else None
         return Track(
             pts,
             wl,
@@ -104,14 +141,21 @@ def track_from_dict(data: Any, *, source: str = "track") -> Track:
             name=data["name"],
             description=data.get("description", ""),
             start_s=start_s,
+            raceline=raceline,
+            waypoints=waypoints,
+            smooth=not resampled,
+            shape_preserving=True,
         )
     except TrackError as err:
         raise TrackError(f"{source}: {err}") from None
 
 
 def track_to_dict(track: Track) -> dict[str, Any]:
-    """Our JSON structure for a track: its resampled centre line in driving order."""
-    return {
+    """Our JSON structure for a track: its resampled centre line in driving order (marked
+    ``resampled``, so loading uses it as is and import -> save -> load gives the same road
+    rather than a fit of a fit), plus the source file's waypoints and the race line when it
+    has them."""
+    out: dict[str, Any] = {
         "schema_version": SCHEMA_VERSION,
         "name": track.name,
         "description": track.description,
@@ -121,7 +165,16 @@ def track_to_dict(track: Track) -> dict[str, Any]:
         "width_right": np.round(track.width_right, 6).tolist(),
         "start": {"s": 0.0},
         "direction": track.orientation,
+        "resampled": True,
     }
+    if track.waypoints is not None:
+        out["waypoints"] = np.round(track.waypoints, 6).tolist()
+    if track.raceline is not None:
+        out["raceline"] = {
+            "points": np.round(track.raceline.points, 6).tolist(),
+            "speed": np.round(track.raceline.speed, 6).tolist(),
+        }
+    return out
 
 
 def read_json(path: Path) -> Track:
@@ -138,8 +191,99 @@ def write_json(track: Track, path: Path) -> None:
     path.write_text(json.dumps(track_to_dict(track), indent=1) + "\n", encoding="utf-8")
 
 
-def read_f1tenth(path: Path, name: str | None = None) -> Track:
-    """Load an F1TENTH race-track CSV (``# x_m, y_m, w_tr_right_m, w_tr_left_m``)."""
+@dataclass(frozen=True)
+class ImportOptions:
+    """How an imported file is adapted (``slipstream tracks import`` options).
+
+    Attributes:
+        scale: multiply every coordinate and width by this (e.g. 0.1 for a 1/10 model of a
+            full-size circuit).
+        width: replace the file's half-widths by this constant, m (after scaling).
+        max_width: cap the half-widths at this many metres (after scaling).
+    """
+
+    scale: float = 1.0
+    width: float | None = None
+    max_width: float | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("scale", "width", "max_width"):
+            value = getattr(self, name)
+            if value is not None and not (np.isfinite(value) and value > 0):
+                raise TrackError(f"--{name.replace('_', '-')} must be a positive number")
+
+
+def _drop_repeats(points: FloatArray) -> tuple[NDArray[np.bool_], int]:
+    """Mask (K,) of the points to keep and how many repeats it drops: a point equal to the
+    one before it is a repeat; a last point equal to the first closes the loop (dropped,
+    not counted)."""
+    same_as_prev = np.zeros(len(points), dtype=bool)
+    same_as_prev[1:] = np.all(np.abs(np.diff(points, axis=0)) <= 1e-9, axis=1)
+    keep = ~same_as_prev
+    kept = np.flatnonzero(keep)
+    if len(kept) > 1 and np.all(np.abs(points[kept[-1]] - points[kept[0]]) <= 1e-9):
+        keep[kept[-1]] = False
+    return keep, int(same_as_prev.sum())
+
+
+def _without_repeats(rows: FloatArray, notes: list[str]) -> FloatArray:
+    """``rows`` (K, C) without repeated points (the first two columns, see
+    :func:`_drop_repeats`); a note says how many were dropped."""
+    if not np.isfinite(rows[:, :2]).all():
+        return rows  # check_raw_inputs names the bad point
+    keep, dropped = _drop_repeats(rows[:, :2])
+    if dropped:
+        notes.append(f"dropped {dropped} repeated row(s)")
+    return rows[keep]
+
+
+def _build_imported(
+    centre: FloatArray,
+    width_left: FloatArray,
+    width_right: FloatArray,
+    *,
+    name: str,
+    description: str,
+    options: ImportOptions,
+    notes: list[str],
+    waypoints: FloatArray | None = None,
+    borders: tuple[FloatArray, FloatArray] | None = None,
+) -> Track:
+    """Smooth, fit widths to bends, validate: the common end of every importer.
+
+    ``borders`` (left, right polylines (K, 2) m, one point per centre point) make the
+    half-widths the distance from the smoothed centre line to the file's own borders.
+    """
+    track = Track(
+        centre,
+        width_left,
+        width_right,
+        name=name,
+        description=description,
+        validate=False,
+        waypoints=waypoints,
+        shape_preserving=True,
+    )
+    if borders is not None and options.width is None:
+        left, right = border_widths(track, centre, borders)
+        track = track.with_widths(left, right)
+    notes += tightened_bends(track, centre)
+    fitted, narrowed = fit_widths(track, options.max_width)
+    validate_track(fitted)
+    fitted.import_notes = (*notes, *narrowed)
+    return fitted
+
+
+def read_f1tenth(
+    path: Path, name: str | None = None, options: ImportOptions | None = None
+) -> Track:
+    """Load an F1TENTH race-track CSV (``# x_m, y_m, w_tr_right_m, w_tr_left_m``).
+
+    Consecutive repeated points are dropped and half-widths wider than a bend's radius are
+    narrowed there (see :func:`tracks.validation.fit_widths`); ``track.import_notes`` says
+    what changed.
+    """
+    opts = options or ImportOptions()
     text = _read_bytes(path).decode("utf-8", errors="replace")
     rows = [r for r in csv.reader(io.StringIO(text)) if r and not r[0].lstrip().startswith("#")]
     if not rows:
@@ -154,13 +298,21 @@ def read_f1tenth(path: Path, name: str | None = None) -> Track:
         arr = np.array([[float(v) for v in r] for r in rows])
     except ValueError as err:
         raise TrackError(f"{path}: not a number ({err})") from None
+    notes: list[str] = []
+    arr = _without_repeats(arr, notes)
+    arr = arr * opts.scale
+    wl, wr = arr[:, 3], arr[:, 2]
+    if opts.width is not None:
+        wl = wr = np.full(len(arr), opts.width)
     try:
-        return Track(
+        return _build_imported(
             arr[:, :2],
-            arr[:, 3],
-            arr[:, 2],
+            wl,
+            wr,
             name=name or path.stem,
             description=f"imported from F1TENTH CSV {path.name}",
+            options=opts,
+            notes=notes,
         )
     except TrackError as err:
         raise TrackError(f"{path}: {err}") from None
@@ -175,13 +327,23 @@ def write_f1tenth(track: Track, path: Path) -> None:
             fh.write(",".join(f"{v:.6f}" for v in r) + "\n")
 
 
-def read_deepracer(path: Path, name: str | None = None, direction: str = "ccw") -> Track:
-    """Load a DeepRacer waypoint ``.npy`` ((N, 6): centre, inner, outer points).
+def read_deepracer(
+    path: Path,
+    name: str | None = None,
+    direction: str = "ccw",
+    options: ImportOptions | None = None,
+) -> Track:
+    """Load a DeepRacer waypoint ``.npy`` ((N, 6): centre, inner and outer points, m).
 
-    DeepRacer route files store the points in the direction they are driven; ``direction``
-    only breaks the tie for files whose loop orientation cannot be read (it is otherwise
-    taken from the points).
+    The file's points are driven in their order. The road is what the file says: each
+    half-width is the distance from the smoothed centre line to the file's own border
+    polyline on that side (which column is left is read from the geometry). Repeated rows
+    (DeepRacer files close the loop by repeating the first, and several repeat another) are
+    dropped; the file's centre points are kept as ``track.waypoints`` (DeepRacer's
+    ``params["waypoints"]``). ``direction`` only breaks the tie for files whose loop
+    orientation cannot be read.
     """
+    opts = options or ImportOptions()
     raw = _read_bytes(path)
     try:
         arr = np.load(io.BytesIO(raw), allow_pickle=False)
@@ -194,25 +356,43 @@ def read_deepracer(path: Path, name: str | None = None, direction: str = "ccw") 
             f"{path}: expected an (N, 6) numeric array of centre, inner and outer points, "
             f"got shape {arr.shape} dtype {arr.dtype}"
         )
-    arr = arr.astype(np.float64)
-    if len(arr) > 1 and np.allclose(arr[0], arr[-1]):
-        arr = arr[:-1]
-    centre, inner, outer = arr[:, 0:2], arr[:, 2:4], arr[:, 4:6]
-    area = signed_area(centre) if np.isfinite(centre).all() else 0.0
+    arr = arr.astype(np.float64) * opts.scale
+    notes: list[str] = []
+    arr = _without_repeats(arr, notes)
+    centre, first, second = arr[:, 0:2], arr[:, 2:4], arr[:, 4:6]
+    area = signed_area(centre) if np.isfinite(arr).all() and len(centre) >= 3 else 0.0
     ccw = area > 0 if area != 0 else direction == "ccw"
-    w_inner = np.linalg.norm(inner - centre, axis=1)
-    w_outer = np.linalg.norm(outer - centre, axis=1)
-    left, right = (w_inner, w_outer) if ccw else (w_outer, w_inner)
+    w_first = np.linalg.norm(first - centre, axis=1)
+    w_second = np.linalg.norm(second - centre, axis=1)
+    if np.isfinite(arr).all() and len(centre) >= 3:
+        tangent = np.roll(centre, -1, axis=0) - np.roll(centre, 1, axis=0)
+        first_left = float(np.sum(np.sign(_cross2(tangent, first - centre)))) > 0
+    else:
+        first_left = ccw  # anticlockwise the inner border (column 3-4) is on the left
+    left, right = (first, second) if first_left else (second, first)
+    wl, wr = (w_first, w_second) if first_left else (w_second, w_first)
+    borders: tuple[FloatArray, FloatArray] | None = (left, right)
+    if opts.width is not None:
+        wl = wr = np.full(len(centre), opts.width)
+        borders = None
     try:
-        return Track(
+        return _build_imported(
             centre,
-            left,
-            right,
+            wl,
+            wr,
             name=name or path.stem,
             description=f"imported from DeepRacer waypoints {path.name}",
+            options=opts,
+            notes=notes,
+            waypoints=centre,
+            borders=borders,
         )
     except TrackError as err:
         raise TrackError(f"{path}: {err}") from None
+
+
+def _cross2(a: FloatArray, b: FloatArray) -> FloatArray:
+    return np.asarray(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0], dtype=np.float64)
 
 
 def write_deepracer(track: Track, path: Path) -> None:
@@ -225,8 +405,53 @@ def write_deepracer(track: Track, path: Path) -> None:
         np.save(fh, np.vstack([arr, arr[:1]]), allow_pickle=False)
 
 
-def read_track_file(path: Path, fmt: TrackFormat | None = None, name: str | None = None) -> Track:
-    """Load a track file in any supported format (guessed from the suffix when not given)."""
+RACELINE_COLUMNS = ("s_m", "x_m", "y_m", "psi_rad", "kappa_radpm", "vx_mps", "ax_mps2")
+
+
+def read_raceline(path: Path, scale: float = 1.0) -> Raceline:
+    """Load an F1TENTH race-line CSV (``# s_m; x_m; y_m; psi_rad; kappa_radpm; vx_mps;
+    ax_mps2``, semicolon separated, ``#`` comment lines; the loop closed by repeating the
+    first point). Only x, y and vx are used: headings and curvature follow from the points.
+    """
+    text = _read_bytes(path).decode("utf-8", errors="replace")
+    rows = [
+        [c.strip() for c in line.split(";")]
+        for line in text.splitlines()
+        if line.strip() and not line.lstrip().startswith("#")
+    ]
+    if not rows:
+        raise TrackError(f"{path}: no data rows (expected {'; '.join(RACELINE_COLUMNS)})")
+    bad = next((i for i, r in enumerate(rows) if len(r) != len(RACELINE_COLUMNS)), None)
+    if bad is not None:
+        raise TrackError(
+            f"{path}: row {bad + 1} has {len(rows[bad])} columns; an F1TENTH race line has "
+            f"{len(RACELINE_COLUMNS)} ({'; '.join(RACELINE_COLUMNS)}), separated by ';'"
+        )
+    try:
+        arr = np.array([[float(v) for v in r] for r in rows])
+    except ValueError as err:
+        raise TrackError(f"{path}: not a number ({err})") from None
+    pts, speed = arr[:, 1:3], arr[:, 5]
+    if np.isfinite(pts).all():
+        keep, _ = _drop_repeats(pts)
+        pts, speed = pts[keep], speed[keep]
+    try:
+        return Raceline(pts, speed).scaled(scale) if scale != 1.0 else Raceline(pts, speed)
+    except TrackError as err:
+        raise TrackError(f"{path}: {err}") from None
+
+
+def read_track_file(
+    path: Path,
+    fmt: TrackFormat | None = None,
+    name: str | None = None,
+    options: ImportOptions | None = None,
+) -> Track:
+    """Load a track file in any supported format (guessed from the suffix when not given).
+
+    ``options`` (scale, width, max width) apply to F1TENTH and DeepRacer files; our JSON is
+    read as written.
+    """
     if fmt is None:
         by_suffix: dict[str, TrackFormat] = {
             ".json": "json",
@@ -237,14 +462,18 @@ def read_track_file(path: Path, fmt: TrackFormat | None = None, name: str | None
         if fmt is None:
             raise TrackError(f"{path}: unknown track format; use --format json|f1tenth|deepracer")
     if fmt == "json":
+        if options is not None and options != ImportOptions():
+            raise TrackError(
+                "--scale, --width and --max-width apply to F1TENTH and DeepRacer files"
+            )
         track = read_json(path)
         if name:
             track.name = name
         return track
     if fmt == "f1tenth":
-        return read_f1tenth(path, name)
+        return read_f1tenth(path, name, options)
     if fmt == "deepracer":
-        return read_deepracer(path, name)
+        return read_deepracer(path, name, options=options)
     raise TrackError(f"unknown track format {fmt!r}; use one of {', '.join(FORMATS)}")
 
 

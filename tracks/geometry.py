@@ -81,8 +81,75 @@ def signed_area(points: FloatArray) -> float:
     return 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y))
 
 
+def three_point_curvature(points: FloatArray) -> FloatArray:
+    """(K,) signed 1/m: curvature of the circle through each point of a closed polyline (K, 2)
+    and its two neighbours (Menger curvature; positive turns left, 0 where they are collinear)."""
+    a, b, c = np.roll(points, 1, axis=0), points, np.roll(points, -1, axis=0)
+    sides = (
+        np.linalg.norm(b - a, axis=1)
+        * np.linalg.norm(c - b, axis=1)
+        * np.linalg.norm(a - c, axis=1)
+    )
+    return np.asarray(2.0 * _cross(b - a, c - a) / np.maximum(sides, 1e-300), dtype=np.float64)
+
+
+@dataclass(frozen=True)
+class Raceline:
+    """An optional reference line of a track: where and how fast to drive (e.g. F1TENTH's
+    optimised race lines).
+
+    Attributes:
+        points: (M, 2) m, in driving order, the loop open (the last point is not repeated).
+        speed: (M,) m/s, the target speed at each point.
+    """
+
+    points: FloatArray
+    speed: FloatArray
+
+    def __post_init__(self) -> None:
+        pts = np.asarray(self.points, dtype=np.float64)
+        spd = np.asarray(self.speed, dtype=np.float64)
+        if pts.ndim != 2 or pts.shape[1] != 2 or len(pts) < 4:
+            raise TrackError(f"a race line needs at least 4 points (M, 2), got {pts.shape}")
+        if spd.shape != (len(pts),):
+            raise TrackError(f"a race line needs one speed per point ({len(pts)})")
+        if not (np.isfinite(pts).all() and np.isfinite(spd).all()) or (spd < 0).any():
+            raise TrackError("race line has NaN, infinite or negative values")
+        object.__setattr__(self, "points", pts)
+        object.__setattr__(self, "speed", spd)
+
+    def reversed(self) -> Raceline:
+        """The same line driven the other way (first point kept first)."""
+        order = np.roll(np.arange(len(self.points))[::-1], 1)
+        return Raceline(self.points[order], self.speed[order])
+
+    def scaled(self, factor: float) -> Raceline:
+        """Coordinates scaled by ``factor``, speeds by its square root (Froude scaling: the
+        same lateral acceleration ``v² / r`` in every bend)."""
+        return Raceline(self.points * factor, self.speed * float(np.sqrt(factor)))
+
+
+TIGHTEN_TOLERANCE = 1.1  # a fitted bend may be this much tighter than the file's points
+TIGHTEN_RADIUS = 5.0  # m: only bends tighter than this are checked
+
+
+def tightening(points: FloatArray, centre: FloatArray, curvature: FloatArray) -> FloatArray:
+    """(N,) how many times tighter a fitted curve bends than its control points allow.
+
+    The bound at each fitted point is the largest raw three-point curvature
+    (:func:`three_point_curvature`) of the nearest control point and its two neighbours;
+    points on bends wider than ``TIGHTEN_RADIUS`` score 0.
+    """
+    raw = np.abs(three_point_curvature(points))
+    bound = np.maximum(np.maximum(raw, np.roll(raw, 1)), np.roll(raw, -1))
+    _, near = cKDTree(points).query(centre)
+    kappa = np.abs(curvature)
+    ratio = kappa / np.maximum(bound[np.asarray(near)], 1e-9)
+    return np.asarray(np.where(kappa * TIGHTEN_RADIUS > 1.0, ratio, 0.0), dtype=np.float64)
+
+
 def smooth_closed_curve(
-    points: FloatArray, widths: FloatArray, spacing: float
+    points: FloatArray, widths: FloatArray, spacing: float, shape_preserving: bool = False
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     """Fit a periodic cubic spline through closed points and resample it at even arc length.
 
@@ -90,10 +157,29 @@ def smooth_closed_curve(
         points: (K, 2) control points in order, m; the curve closes from the last to the first.
         widths: (K, 2) left/right half-widths at the control points, m (interpolated linearly).
         spacing: target distance between resampled points, m.
+        shape_preserving: where the spline bends more than ``TIGHTEN_TOLERANCE`` times
+            tighter than the points (:func:`tightening`), use the arc spline of
+            :mod:`tracks.arcspline` instead when it tightens less.
 
     Returns:
         centre (N, 2) m, widths (N, 2) m, unit tangents (N, 2), curvature (N,) 1/m.
     """
+    fitted = _cubic_closed_curve(points, widths, spacing)
+    if shape_preserving:
+        worst = float(tightening(points, fitted[0], fitted[3]).max())
+        if worst > TIGHTEN_TOLERANCE:
+            from tracks.arcspline import arc_spline_curve  # noqa: PLC0415 - rarely needed
+
+            arcs = arc_spline_curve(points, widths, spacing)
+            if float(tightening(points, arcs[0], arcs[3]).max()) < worst:
+                return arcs
+    return fitted
+
+
+def _cubic_closed_curve(
+    points: FloatArray, widths: FloatArray, spacing: float
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """The periodic cubic spline of :func:`smooth_closed_curve`."""
     closed = np.vstack([points, points[:1]])
     chord = np.linalg.norm(np.diff(closed, axis=0), axis=1)
     u = np.concatenate([[0.0], np.cumsum(chord)])
@@ -134,6 +220,15 @@ class Track:
         spacing: resampling distance, m. ``smooth=False`` keeps the points as given.
         smooth: fit and resample a spline (True) or use ``centre`` as the polyline itself.
         validate: run :func:`tracks.validation.validate_track` and raise :class:`TrackError`.
+        raceline: an optional reference line (:class:`Raceline`), kept as given.
+        waypoints: the source file's own centre-line points (K, 2) m, in driving order
+            (DeepRacer's ``waypoints``); stored closed (first point repeated at the end).
+        shape_preserving: do not let the fit bend much tighter than the points (see
+            :func:`smooth_closed_curve`); importers of outside files set it.
+
+    Attributes besides the arrays: ``raceline``, ``waypoints`` (None unless given),
+    ``is_reversed`` (True for :meth:`reversed` tracks: driven against the direction their
+    file gives) and ``import_notes`` (what an importer changed, one line each).
     """
 
     def __init__(
@@ -148,6 +243,9 @@ class Track:
         spacing: float = DEFAULT_SPACING,
         smooth: bool = True,
         validate: bool = True,
+        raceline: Raceline | None = None,
+        waypoints: ArrayLike | None = None,
+        shape_preserving: bool = False,
     ) -> None:
         from tracks.validation import check_raw_inputs, validate_track  # noqa: PLC0415 (cycle)
 
@@ -159,9 +257,18 @@ class Track:
         check_raw_inputs(pts, wl, wr)
         self.name = name
         self.description = description
+        self.raceline = raceline
+        self.waypoints: FloatArray | None = None
+        if waypoints is not None:
+            wp = _as_points(waypoints, "waypoints")
+            if len(wp) > 1 and np.allclose(wp[0], wp[-1]):
+                wp = wp[:-1]
+            self.waypoints = np.vstack([wp, wp[:1]])
+        self.is_reversed = False
+        self.import_notes: tuple[str, ...] = ()
         if smooth:
             c, w, tangents, curvature = smooth_closed_curve(
-                pts, np.stack([wl, wr], axis=1), spacing
+                pts, np.stack([wl, wr], axis=1), spacing, shape_preserving
             )
         else:
             c, w = pts, np.stack([wl, wr], axis=1)
@@ -230,6 +337,72 @@ class Track:
     def right_border(self) -> FloatArray:
         """(N, 2) m: the right road edge."""
         return self.centre - self.width_right[:, None] * self.normals
+
+    def on_road(
+        self,
+        points: ArrayLike,
+        margin: float = 0.0,
+        own_s: FloatArray | None = None,
+        near: float = 0.0,
+    ) -> NDArray[np.bool_]:
+        """(M,) True where a point lies within ``margin`` m of the road surface.
+
+        A local test, unlike :meth:`is_inside`: the road is the union of the cross-sections
+        ``[-width_right, width_left]`` at every centre point, each a segment long, so a point
+        near the centre of a tight bend is not mistaken for one on the road beside it.
+        With ``own_s`` (M,) m, cross-sections within ``near`` m of it along the lap count
+        without the margin (a point just outside its own edge is not "near the road").
+        """
+        p = _as_points(points)
+        half = 0.5 * float(self.segment_lengths.max()) + margin
+        reach = float(max(self.width_left.max(), self.width_right.max())) + half + margin
+        pairs = cKDTree(p).sparse_distance_matrix(self._tree, reach, output_type="ndarray")
+        hit = np.zeros(len(p), dtype=bool)
+        if len(pairs) == 0:
+            return hit
+        i, j = pairs["i"], pairs["j"]
+        rel = p[i] - self.centre[j]
+        along = np.einsum("mk,mk->m", rel, self.tangents[j])
+        across = np.einsum("mk,mk->m", rel, self.normals[j])
+        m = np.full(len(i), margin)
+        if own_s is not None:
+            m[np.abs(self.delta_s(self.s[j], np.asarray(own_s)[i])) < near] = 0.0
+        inside = (
+            (np.abs(along) <= 0.5 * float(self.segment_lengths.max()) + m)
+            & (across <= self.width_left[j] + m)
+            & (across >= -self.width_right[j] - m)
+        )
+        hit[i[inside]] = True
+        return hit
+
+    def wall_offsets(
+        self, runoff: float, steps: int = 8, margin: float = 0.05
+    ) -> tuple[FloatArray, FloatArray]:
+        """Distances (N,) m from the centre line to walls ``runoff`` m outside each edge.
+
+        Each side's run-off is shortened where the full one would put the wall on (or within
+        ``margin`` m of) another part of the road, as in the narrow infield of a hairpin,
+        or past the centre of a bend: the largest of ``steps`` even fractions of ``runoff``
+        whose wall point, and every nearer one, is off the road.
+
+        Returns:
+            left, right offsets (N,) m, both positive.
+        """
+        fractions = np.linspace(0.0, 1.0, steps + 1)[1:]
+        out = []
+        for sign, width in ((1.0, self.width_left), (-1.0, self.width_right)):
+            ok = np.ones(self.n_points, dtype=bool)
+            run = np.zeros(self.n_points)
+            limit = 0.98 / np.maximum(np.abs(self.curvature), 1e-9)
+            inner = np.sign(self.curvature) == sign
+            for f in fractions:
+                d = width + f * runoff
+                ok &= ~(inner & (d > limit))
+                pts = self.centre + (sign * d)[:, None] * self.normals
+                ok &= ~self.on_road(pts, margin, own_s=self.s, near=NEAR_SECTIONS)
+                run = np.where(ok, f * runoff, run)
+            out.append(width + run)
+        return out[0], out[1]
 
     @cached_property
     def width(self) -> FloatArray:
@@ -476,12 +649,33 @@ class Track:
                 turn = 0.0
         return corners + int(turn >= CORNER_MIN_TURN)
 
+    def with_widths(self, width_left: ArrayLike, width_right: ArrayLike) -> Track:
+        """The same centre line with new half-widths (N,) m per point; not validated."""
+        out = Track.__new__(Track)
+        out.__dict__.update(
+            {k: v for k, v in self.__dict__.items() if k not in _DERIVED_FROM_WIDTHS}
+        )
+        n = self.n_points
+        w = np.stack(
+            [
+                _as_widths(width_left, n, "width_left"),
+                _as_widths(width_right, n, "width_right"),
+            ],
+            axis=1,
+        )
+        out._set_arrays(self.centre, w, self.tangents, self.curvature)
+        return out
+
     def reversed(self) -> Track:
         """The same road driven the other way: start line kept, left and right swapped."""
         order = np.roll(np.arange(self.n_points)[::-1], 1)  # index 0 stays the start line
         rev = Track.__new__(Track)
         rev.name = f"{self.name}-reversed"
         rev.description = self.description
+        rev.raceline = self.raceline.reversed() if self.raceline is not None else None
+        rev.waypoints = self.waypoints[::-1].copy() if self.waypoints is not None else None
+        rev.is_reversed = not self.is_reversed
+        rev.import_notes = self.import_notes
         rev._set_arrays(
             self.centre[order],
             np.stack([self.width_right[order], self.width_left[order]], axis=1),
@@ -489,6 +683,71 @@ class Track:
             -self.curvature[order],
         )
         return rev
+
+
+def _control_interval(track: Track, points: FloatArray) -> IntArray:
+    """(N,) index ``m`` of the control segment ``points[m] -> points[m+1]`` that each of the
+    track's points lies on (control points (K, 2) m in driving order, on the centre line)."""
+    s_ctrl = track.project(points).s
+    rel = np.mod(s_ctrl - s_ctrl[0], track.length)
+    rel = np.maximum.accumulate(rel)  # tolerate a tiny backwards step from projection noise
+    here = np.mod(track.s - s_ctrl[0], track.length)
+    m = np.searchsorted(rel, here, side="right") - 1
+    return np.clip(m, 0, len(points) - 1).astype(np.int64)
+
+
+def border_widths(
+    track: Track, points: FloatArray, borders: tuple[FloatArray, FloatArray], reach: int = 3
+) -> tuple[FloatArray, FloatArray]:
+    """Half-widths (N,) m from the track's centre points to a file's own border polylines.
+
+    Args:
+        track: the smoothed track.
+        points: (K, 2) m the file's centre points the track was fitted through.
+        borders: left and right border points (K, 2) m, one per centre point, closed loops.
+        reach: border segments searched on each side of the matching centre segment.
+
+    Returns:
+        left, right (N,): the distance from each centre point to the nearest point of that
+        border polyline near it along the lap.
+    """
+    k = len(points)
+    m = _control_interval(track, points)
+    idx = (m[:, None] + np.arange(-reach, reach + 1)[None, :]) % k  # (N, C) segments
+    out = []
+    for border in borders:
+        a, b = border[idx], border[(idx + 1) % k]  # (N, C, 2)
+        ab = b - a
+        ap = track.centre[:, None, :] - a
+        t = np.clip(
+            np.einsum("ncj,ncj->nc", ap, ab) / np.maximum(np.einsum("ncj,ncj->nc", ab, ab), 1e-18),
+            0.0,
+            1.0,
+        )
+        gap = np.linalg.norm(ap - t[..., None] * ab, axis=-1)
+        out.append(gap.min(axis=1))
+    return out[0], out[1]
+
+
+def tightened_bends(track: Track, points: FloatArray) -> list[str]:
+    """Where the track bends tighter than its control points (K, 2) allow (:func:`tightening`
+    over ``TIGHTEN_TOLERANCE``): one line naming the worst place and both radii, or none."""
+    ratio = tightening(points, track.centre, track.curvature)
+    k = int(np.argmax(ratio))
+    if ratio[k] <= TIGHTEN_TOLERANCE:
+        return []
+    radius = 1.0 / abs(float(track.curvature[k]))
+    return [
+        f"the centre line bends tighter than the file's points at "
+        f"{int((ratio > TIGHTEN_TOLERANCE).sum())} point(s); worst at s={track.s[k]:.1f} m: "
+        f"radius {radius:.2f} m where the points give {radius * ratio[k]:.2f} m"
+    ]
+
+
+NEAR_SECTIONS = 0.5  # m along the lap: a wall's own stretch of road, checked without margin
+
+# Cached properties that depend on the widths (dropped by :meth:`Track.with_widths`).
+_DERIVED_FROM_WIDTHS = ("left_border", "right_border", "width", "bounds")
 
 
 def _polyline_tangents_curvature(c: FloatArray) -> tuple[FloatArray, FloatArray]:

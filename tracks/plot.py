@@ -32,6 +32,7 @@ LEFT_COLOUR = "#c0392b"  # left border (seen in the driving direction)
 RIGHT_COLOUR = "#1f4e9c"
 GATE_COLOUR = "#e67e22"
 CENTRE_COLOUR = "#2b2b2b"
+RACELINE_CMAP = "viridis"  # race line, coloured by its target speed
 CAR_COLOURS = ("#d62728", "#2ca02c", "#9467bd", "#17becf", "#8c564b", "#e377c2")
 FIG_WIDTH = 10.0  # inches
 DPI = 120
@@ -89,6 +90,20 @@ def _car_outlines(poses: FloatArray) -> list[FloatArray]:
     return outlines
 
 
+def raceline_collection(track: Track) -> LineCollection | None:
+    """The track's race line as a closed chain of segments coloured by target speed (m/s),
+    or None when the track has no race line."""
+    if track.raceline is None:
+        return None
+    pts = track.raceline.points
+    segments = np.stack([pts, np.roll(pts, -1, axis=0)], axis=1)  # (M, 2, 2), closed
+    speed = track.raceline.speed
+    lines = LineCollection(list(segments), cmap=RACELINE_CMAP, linewidths=2.2, zorder=4)
+    lines.set_array(0.5 * (speed + np.roll(speed, -1)))
+    lines.set_label("race line")
+    return lines
+
+
 def default_title(track: Track) -> str:
     """Name, lap length, width range, corners and direction in one line."""
     direction = "anticlockwise" if track.orientation == "ccw" else "clockwise"
@@ -108,7 +123,8 @@ def plot_track(
     """Draw a track seen from above and save it as an image (format from the suffix).
 
     Shows the road surface, the left (red) and right (blue) borders, the dashed centre line,
-    the chequered start/finish line, an arrow for the driving direction just after the start,
+    the race line coloured by its speed (when the track has one), the chequered start/finish
+    line, an arrow for the driving direction just after the start,
     the numbered checkpoint gates and a start grid of four cars.
 
     Args:
@@ -140,6 +156,11 @@ def plot_track(
     ):
         ring = np.vstack([border, border[:1]])
         ax.plot(*ring.T, color=colour, lw=1.6, zorder=3, label=label)
+
+    race = raceline_collection(track)
+    if race is not None:
+        ax.add_collection(race)
+        fig.colorbar(race, ax=ax, shrink=0.6, pad=0.01, label="race line speed [m/s]")
 
     # Checkpoint gates 1..n-1 (gate 0 is the chequered line), numbered beside the left end.
     gate_s = track.checkpoint_s(n_checkpoints)

@@ -12,7 +12,7 @@ from scipy.spatial import cKDTree
 from tracks.errors import TrackError
 
 if TYPE_CHECKING:
-    from tracks.geometry import FloatArray, Track
+    from tracks.geometry import FloatArray, IntArray, Track
 
 MIN_POINTS = 4  # a periodic cubic spline needs at least 4 distinct control points
 MIN_LENGTH = 5.0  # m: shorter than this is not a race track for a 0.5 m car
@@ -98,32 +98,151 @@ def validate_track(track: Track) -> None:
     _check_clearance(track)
 
 
-def _check_clearance(track: Track) -> None:
-    """Parts of the road that are far apart along the lap must not overlap in the plane."""
+def _near_pairs(
+    track: Track, folds_back: bool = False
+) -> tuple[IntArray, IntArray, FloatArray, FloatArray, FloatArray]:
+    """Pairs of centre points far apart along the lap but near in the plane.
+
+    ``folds_back`` also takes pairs closer along the lap whose road has turned back on
+    itself between them (lap distance over ``FOLD_BACK`` times the distance in the plane),
+    such as the two legs of a hairpin.
+
+    Returns:
+        ``i``, ``j`` (P,) point indices; ``gap`` (P,) m between them; ``side_i``, ``side_j``
+        (P,) +1 where the other point lies to the left of that point's direction, -1 right.
+    """
     c = track.centre
     wmax = float(max(track.width_left.max(), track.width_right.max()))
     window = 4.0 * wmax + 1.0  # m along the lap inside which nearness is just the bend itself
     pairs = cKDTree(c).query_pairs(r=2.0 * wmax, output_type="ndarray")
+    empty = np.zeros(0, dtype=np.int64)
     if len(pairs) == 0:
-        return
+        return empty, empty, np.zeros(0), np.zeros(0), np.zeros(0)
     i, j = pairs[:, 0], pairs[:, 1]
     sep = np.abs(track.delta_s(track.s[j], track.s[i]))
-    i, j = i[sep > window], j[sep > window]
-    if len(i) == 0:
-        return
+    keep = sep > window
+    if folds_back:
+        keep |= sep > FOLD_BACK * np.linalg.norm(c[j] - c[i], axis=1)
+    i, j = i[keep], j[keep]
     delta = c[j] - c[i]
     left_of_i = (track.tangents[i, 0] * delta[:, 1] - track.tangents[i, 1] * delta[:, 0]) > 0
     left_of_j = (track.tangents[j, 0] * -delta[:, 1] - track.tangents[j, 1] * -delta[:, 0]) > 0
-    need = np.where(left_of_i, track.width_left[i], track.width_right[i]) + np.where(
-        left_of_j, track.width_left[j], track.width_right[j]
+    side_i = np.where(left_of_i, 1.0, -1.0)
+    side_j = np.where(left_of_j, 1.0, -1.0)
+    return i, j, np.linalg.norm(delta, axis=1), side_i, side_j
+
+
+def _check_clearance(track: Track) -> None:
+    """Parts of the road that are far apart along the lap must not overlap in the plane."""
+    i, j, gap, side_i, side_j = _near_pairs(track)
+    need = np.where(side_i > 0, track.width_left[i], track.width_right[i]) + np.where(
+        side_j > 0, track.width_left[j], track.width_right[j]
     )
-    overlap = np.linalg.norm(delta, axis=1) < need
+    overlap = gap < need
     if overlap.any():
         k = _first(overlap)
         raise TrackError(
             "road overlaps itself (the surface near "
             f"s={track.s[i[k]]:.1f} m touches the surface near s={track.s[j[k]]:.1f} m)"
         )
+
+
+FOLD_FRACTION = 0.9  # a narrowed inner edge keeps 10 % of the bend's radius
+FOLD_BACK = 1.7  # lap distance / plane distance past which two stretches face each other
+# (a semicircle gives π/2 ≈ 1.57 between its ends: those are left to the fold rule)
+OVERLAP_FRACTION = 0.45  # each of two facing roads keeps under half of the gap between them
+TAPER = 0.3  # m of width change per m along the lap where a narrowed stretch begins and ends
+
+
+def fit_widths(track: Track, max_width: float | None = None) -> tuple[Track, tuple[str, ...]]:
+    """Narrow the half-widths locally so the road neither folds nor overlaps itself.
+
+    Real track files often give a constant half-width (F1TENTH: 1.1 m) that is wider than
+    the radius of their tightest bends. Rather than refuse them, the inner half-width is cut
+    to ``FOLD_FRACTION`` of the bend's radius, facing stretches of road that would touch
+    (across an infield, or the two legs of a hairpin) are cut to under half the gap between
+    them, and every cut tapers in and out at ``TAPER`` m/m. Widths never grow.
+
+    Args:
+        track: a built track (its widths may fold; it need not be validated).
+        max_width: also cap every half-width at this many metres.
+
+    Returns:
+        The track with fitted widths (not validated) and one note per narrowed stretch,
+        saying where (progress ``s``), which side and by how much.
+    """
+    if max_width is not None:  # asked for: not reported as a narrowing
+        track = track.with_widths(
+            np.minimum(track.width_left, max_width), np.minimum(track.width_right, max_width)
+        )
+    kappa = track.curvature
+    caps = np.stack([track.width_left.copy(), track.width_right.copy()], axis=1)  # (N, 2)
+    radius = FOLD_FRACTION / np.maximum(np.abs(kappa), 1e-9)
+    caps[:, 0] = np.where(kappa > 0, np.minimum(caps[:, 0], radius), caps[:, 0])
+    caps[:, 1] = np.where(kappa < 0, np.minimum(caps[:, 1], radius), caps[:, 1])
+    i, j, gap, side_i, side_j = _near_pairs(
+        track.with_widths(caps[:, 0], caps[:, 1]), folds_back=True
+    )
+    col_i, col_j = (side_i < 0).astype(np.int64), (side_j < 0).astype(np.int64)
+    need = caps[i, col_i] + caps[j, col_j]
+    over = need > OVERLAP_FRACTION * 2 * gap
+    if over.any():
+        scale = np.ones(len(i))
+        scale[over] = OVERLAP_FRACTION * 2 * gap[over] / need[over]
+        np.minimum.at(caps, (i, col_i), caps[i, col_i] * scale)
+        np.minimum.at(caps, (j, col_j), caps[j, col_j] * scale)
+    fitted = np.stack([_taper(caps[:, k], track.s, track.length) for k in range(2)], axis=1)
+    notes: list[str] = []
+    for k, side in enumerate(("left", "right")):
+        before = track.width_left if k == 0 else track.width_right
+        notes += _narrowing_notes(track, side, before, fitted[:, k])
+    return track.with_widths(fitted[:, 0], fitted[:, 1]), tuple(notes)
+
+
+def _taper(caps: FloatArray, s: FloatArray, length: float) -> FloatArray:
+    """The largest widths (N,) under ``caps`` that change by at most ``TAPER`` m per m.
+
+    A lower envelope of cones ``caps[j] + TAPER * |s - s[j]|`` around the closed lap: two
+    sweeps each way (twice round, so the loop's seam is covered).
+    """
+    n = len(caps)
+    out = caps.copy()
+    ds = np.diff(np.concatenate([s, [length]]))  # (N,) m from point k to k+1
+    for _ in range(2):
+        for k in range(1, n + 1):  # forward
+            a, b = (k - 1) % n, k % n
+            out[b] = min(out[b], out[a] + TAPER * ds[a])
+        for k in range(n - 1, -1, -1):  # backward
+            a, b = (k + 1) % n, k
+            out[b] = min(out[b], out[a] + TAPER * ds[b])
+    return out
+
+
+def _narrowing_notes(
+    track: Track, side: str, before: FloatArray, after: FloatArray, tol: float = 1e-3
+) -> list[str]:
+    """One line per contiguous stretch where a side was narrowed by more than ``tol`` m."""
+    cut = before - after > tol
+    if not cut.any():
+        return []
+    if cut.all():
+        runs = [np.arange(len(cut))]
+    else:
+        start = int(np.argmin(cut))  # begin on an uncut point so no run wraps the seam
+        order = np.roll(np.arange(len(cut)), -start)
+        flags = cut[order]
+        edges = np.flatnonzero(np.diff(np.concatenate([[0], flags.astype(np.int8), [0]])))
+        runs = [order[a:b] for a, b in zip(edges[::2], edges[1::2], strict=True)]
+    notes = []
+    for run in runs:
+        k = run[int(np.argmax(before[run] - after[run]))]
+        radius = 1.0 / max(abs(float(track.curvature[k])), 1e-9)
+        why = f", bend radius {radius:.2f} m" if radius < 1e3 else ""
+        notes.append(
+            f"narrowed the {side} half-width at s={track.s[run[0]]:.1f}-{track.s[run[-1]]:.1f} m"
+            f" by up to {before[k] - after[k]:.2f} m ({before[k]:.2f} -> {after[k]:.2f} m{why})"
+        )
+    return notes
 
 
 def grid_fits(track: Track, n_cars: int, margin: float = 0.05) -> bool:

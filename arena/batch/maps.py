@@ -28,7 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from arena.lidar import DEFAULT_RANGE, Lidar
-from arena.walls import DEFAULT_RUNOFF, Walls
+from arena.walls import DEFAULT_RUNOFF, Walls, wall_offsets
 from tracks import Track
 
 FloatArray = NDArray[np.float64]
@@ -136,9 +136,9 @@ class TrackMaps:
         grid = Grid.covering(lo, hi, cell)
         pts = grid.centres()
         proj = track.project(pts)
-        left, right = track.widths_at(proj.s)
-        to_left = left + runoff - proj.d  # m to the left wall, across the road
-        to_right = right + runoff + proj.d
+        wall_left, wall_right = _wall_offsets_at(track, runoff, proj.s)
+        to_left = wall_left - proj.d  # m to the left wall, across the road
+        to_right = wall_right + proj.d
         clearance = np.minimum(to_left, to_right)
         normal = np.stack([-np.sin(proj.heading), np.cos(proj.heading)], axis=1)
         wall_normal = np.where((to_left < to_right)[:, None], -normal, normal)
@@ -146,8 +146,8 @@ class TrackMaps:
         lgrid = Grid.covering(lo, hi, lidar_cell)
         lpts = lgrid.centres()
         lproj = track.project(lpts)
-        lleft, lright = track.widths_at(lproj.s)
-        near = np.minimum(lleft + runoff - lproj.d, lright + runoff + lproj.d) > -LIDAR_REACH
+        lleft, lright = _wall_offsets_at(track, runoff, lproj.s)
+        near = np.minimum(lleft - lproj.d, lright + lproj.d) > -LIDAR_REACH
         rows = np.flatnonzero(near)
         lidar = Lidar(walls, lidar_bins, 2 * math.pi, max_range)
         ranges = np.zeros((len(rows) + 1, lidar_bins), dtype=np.float32)  # last row: blind
@@ -183,3 +183,14 @@ class TrackMaps:
         """Bytes of the grids and the range table."""
         arrays = (self.segment, self.clearance, self.wall_normal, self.lidar_row, self.ranges)
         return sum(a.nbytes for a in arrays)
+
+
+def _wall_offsets_at(track: Track, runoff: float, s: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Left and right wall offsets (M,) m at progress ``s`` (M,) m, linearly interpolated."""
+    left, right = wall_offsets(track, runoff)
+    at = track.wrap_s(s)
+    knots = np.append(track.s, track.length)
+    return (
+        np.interp(at, knots, np.append(left, left[0])),
+        np.interp(at, knots, np.append(right, right[0])),
+    )

@@ -21,6 +21,19 @@ observation of the step that ended the episode is returned as ``final_obs``. Wit
 ``auto_reset`` (the PettingZoo env), done cars leave the race: they stop, and no other car
 sees or touches them.
 
+Model uncertainty (:mod:`arena.uncertainty`), per car and per environment, as arrays:
+:meth:`BatchSim.set_perturbation` takes values (B, N, n_params) and the simulator applies
+the dynamics multipliers and steering trim inside the tyre model, the actuation latency (a
+FIFO of whole control steps per environment) and action noise before physics, and lidar
+noise and dropout on the observation — all through ``where``, nothing per car in Python.
+With ``uncertainty=`` (the training path) the simulator also draws or moves the values
+itself (:class:`arena.uncertainty.PerturbationState`: per episode, per step, or by nature
+agents whose observations :meth:`BatchSim.nature_obs` gives for all environments at once)
+and returns the perturbed reward. Nominal simulators do none of this work.
+
+One simulator holds one track (its maps are per track); several tracks are several
+simulators (:class:`arena.batch.vec_env.BatchVecEnv` keeps one per track and direction).
+
 Arrays live on ``device`` (:func:`arena.batch.xp.get_ops`): ``"numpy"`` (float64 by
 default), ``"torch:cpu"`` or ``"cuda"`` (float32 by default).
 """
@@ -40,7 +53,17 @@ from arena.batch.lidar import car_pairs, car_ranges, ray_angles, wall_ranges
 from arena.batch.maps import TrackMaps
 from arena.batch.track import DeviceTrack
 from arena.batch.xp import Array, get_ops
-from arena.env import CUT_JUMP, STUCK_DISTANCE, default_max_cycles
+from arena.core import (
+    CUT_JUMP,
+    STATE_FEATURES,
+    EpisodeRules,
+    EpisodeState,
+    Sensed,
+    default_max_cycles,
+    episode_start,
+    episode_step,
+    global_state,
+)
 from arena.lidar import DEFAULT_FOV, DEFAULT_RANGE
 from arena.observations import (
     LOOKAHEAD,
@@ -51,40 +74,38 @@ from arena.observations import (
     vector_observation,
     wrap_angle,
 )
-from arena.rewards import RACING_TERMS, RewardWeights, collision_blame, race_positions, racing_terms
+from arena.rewards import RewardWeights, race_positions
 from arena.sim import CarParams, SimError
+from arena.uncertainty import (
+    INDEX,
+    LATENCY,
+    MAX_LATENCY,
+    PARAM_NAMES,
+    PerturbationState,
+    UncertaintyConfig,
+    UncertaintyError,
+    normalised,
+    perturbed_reward,
+)
 from arena.walls import DEFAULT_RUNOFF
 from tracks import Track, load_track
 from tracks.geometry import DEFAULT_CHECKPOINTS
 
 
 @dataclass
-class RaceState:
+class RaceState(EpisodeState):
     """Everything per environment and car that a step reads and writes; arrays (B, N).
 
-    ``car`` holds the rigid bodies; ``history`` (B, W, N) the race progress of the last W
-    steps (stuck detection); ``steps`` (B,) control steps since the environment's reset.
+    The race rules' :class:`arena.core.EpisodeState` (progress, gates, laps, contacts, the
+    stuck-detection ``history`` (B, W, N), ``steps`` (B,) …) plus the simulator's own:
+    ``car`` (the rigid bodies) and the projection onto the centre line (``d``, ``heading``,
+    ``segment``).
     """
 
     car: CarState
-    s: Array
     d: Array
     heading: Array
     segment: Array
-    next_gate: Array
-    laps: Array
-    race_progress: Array
-    positions: Array
-    active: Array
-    finished: Array
-    finish_time: Array
-    off_time: Array
-    line_time: Array
-    last_lap: Array
-    contact: Array  # (B, N, N)
-    history: Array  # (B, W, N)
-    steps: Array  # (B,)
-    grid_start: Array  # (B,)
 
 
 @dataclass
@@ -103,6 +124,10 @@ class StepResult:
         contact, new_contact, at_fault: (B, N, N) bool; closing (B, N, N) m/s.
         env_done: (B,) bool, the environment ended this step (and was reset with auto_reset).
         final_obs: (B, N, D) observations before the reset (equal to ``obs`` elsewhere).
+        reward_nominal: (B, N) the unperturbed reward (``reward`` itself with no
+            ``uncertainty``).
+        final_nature_obs: (B, N, S) with ``uncertainty``: the nature observations before the
+            reset (else None).
     """
 
     obs: Array
@@ -122,6 +147,8 @@ class StepResult:
     closing: Array
     env_done: Array
     final_obs: Array
+    reward_nominal: Array | None = None
+    final_nature_obs: Array | None = None
 
 
 class BatchSim:
@@ -146,8 +173,26 @@ class BatchSim:
         start_positions: grid placements along the lap in the start table.
         random_starts: draw the placement and grid order of each reset at random (else the
             grid behind the start line, cars in order).
-        seed: seeds the start draws.
+        seed: seeds the start draws and the perturbation draws.
+        uncertainty: model uncertainty (:mod:`arena.uncertainty`), any mode: each
+            environment's cars get their perturbation at every (automatic) reset and before
+            every step from one :class:`arena.uncertainty.PerturbationState` (B, N); the
+            simulator applies the dynamics, latency, action noise and lidar columns
+            (:meth:`set_perturbation`) and returns the perturbed reward
+            (:func:`arena.uncertainty.perturbed_reward`) with the nominal one beside it.
+            In ``adversarial`` mode the natures' actions (B, N, k) come from ``step(...,
+            nature=)`` or else from :attr:`nature` (a driver with ``act_batch``) applied to
+            :meth:`nature_obs`; with neither, the nominal point (pulled into the box) stays.
     """
+
+    # Model-uncertainty state, created on first use (set_perturbation / uncertainty=).
+    _fifo: Array  # (B, MAX_LATENCY + 1, N, 2) commands of the last steps
+    _lag: Array  # (B, N) int latency, control steps
+    _noise_amp: Array  # (B, N) action-noise amplitude
+    _lidar_noise: Array  # (B, N) std on normalised ranges
+    _dropout: Array  # (B, N) probability a ray reads max range
+    unc: PerturbationState
+    final_nature_obs: Array
 
     def __init__(
         self,
@@ -173,6 +218,7 @@ class BatchSim:
         start_positions: int = 32,
         random_starts: bool = False,
         seed: int | None = None,
+        uncertainty: UncertaintyConfig | None = None,
     ) -> None:
         if not 1 <= n_cars <= 16:
             raise SimError(f"n_cars must be between 1 and 16, got {n_cars}")
@@ -186,6 +232,7 @@ class BatchSim:
         if laps < 1:
             raise SimError(f"laps must be at least 1, got {laps}")
         self.ops = ops = get_ops(device, dtype)
+        self.device = device
         self.track = load_track(track)
         self.n_envs, self.n_cars, self.laps = n_envs, n_cars, laps
         self.params = car_params or CarParams()
@@ -223,8 +270,22 @@ class BatchSim:
         self._wheel_x = ops.asarray(np.array([0.5, 0.5, -0.5, -0.5]) * p.wheelbase)
         self._wheel_y = ops.asarray(np.array([0.5, -0.5, 0.5, -0.5]) * p.track_width)
         self.window = max(1, round(stuck_time * control_hz))
+        self.rules = EpisodeRules.build(
+            self.track, ops, n_cars=n_cars, laps=laps, control_hz=control_hz, params=p,
+            max_cycles=self.max_cycles, off_track_limit=off_track_limit, stuck_time=stuck_time,
+            weights=self.weights,
+        )  # fmt: skip
         self.scales = self.nominal_scales(n_envs)
+        self.perturbed = False  # set by set_perturbation: until then no uncertainty work
         self.rng = ops.rng(seed)
+        if uncertainty is not None and not isinstance(uncertainty, UncertaintyConfig):
+            raise UncertaintyError("uncertainty must be an arena.uncertainty.UncertaintyConfig")
+        self.uncertainty = uncertainty if uncertainty and uncertainty.mode != "nominal" else None
+        self.nature: Any = None  # adversarial: drives the natures when step() gets none
+        if self.uncertainty is not None:
+            self.unc = PerturbationState(self.uncertainty, (n_envs, n_cars))
+            self._unc_rng = np.random.default_rng(seed)
+            self.set_perturbation(self.unc.values)
         self._build_start_table(start_positions)
         self.state = self._start_state(
             ops.zeros(n_envs, dtype=ops.int), self._identity_order(n_envs)
@@ -290,32 +351,8 @@ class BatchSim:
             vx=zeros, vy=zeros, r=zeros, steering=zeros,
         )  # fmt: skip
         s, d, heading, seg = self.dev.project(car.x, car.y)
-        grid_start = start == 0
-        ahead = ops.searchsorted(self._gates, s)
-        next_gate = ops.where(ahead >= self.n_gates, 0, ahead)
-        offset = self._offsets[start]
-        progress = self.dev.delta_s(s, 0.0) + ops.where(grid_start, 0.0, offset)[:, None]
-        return RaceState(
-            car=car,
-            s=s,
-            d=d,
-            heading=heading,
-            segment=seg,
-            next_gate=next_gate,
-            laps=ops.full((b, n), -1, dtype=ops.int),
-            race_progress=progress,
-            positions=race_positions(progress, ops),
-            active=ops.full((b, n), True, dtype=ops.bool),
-            finished=ops.full((b, n), False, dtype=ops.bool),
-            finish_time=ops.full((b, n), 1e9),
-            off_time=zeros,
-            line_time=zeros,
-            last_lap=zeros,
-            contact=ops.full((b, n, n), False, dtype=ops.bool),
-            history=progress[:, None, :] + ops.zeros((b, self.window, n)),
-            steps=ops.zeros(b, dtype=ops.int),
-            grid_start=grid_start,
-        )
+        ep = episode_start(ops, self.rules, s, self._offsets[start], start == 0)
+        return RaceState(car=car, d=d, heading=heading, segment=seg, **ep.__dict__)
 
     def _start_obs(self, start: Array, slot_of_car: Array) -> Array:
         return self._start_obs_table[start[:, None], slot_of_car]
@@ -344,11 +381,19 @@ class BatchSim:
         """
         if seed is not None:
             self.rng = self.ops.rng(seed)
+            if self.uncertainty is not None:
+                self._unc_rng = np.random.default_rng(seed)
+        if self.uncertainty is not None:
+            self.unc.start(self._unc_rng)
+            self.set_perturbation(self.unc.values)
         drawn_start, drawn_slots = self.draw_starts(self.n_envs)
         start = drawn_start if start is None else self.ops.asarray(start, dtype=self.ops.int)
         slots = drawn_slots if slot_of_car is None else self.ops.asarray(slot_of_car)
         self.state = self._start_state(start, slots)
         self.obs = self._start_obs(start, slots)
+        if self.perturbed:
+            self._fifo = self.ops.zeros(self._fifo.shape)
+            self.obs = self._jitter_lidar(self.obs)
         return self.obs
 
     def set_poses(self, poses: Array, velocity: Array | None = None) -> Array:
@@ -373,6 +418,146 @@ class BatchSim:
         self.state = st
         self.obs = self._observe(st, self.scales)
         return self.obs
+
+    # ---- model uncertainty ------------------------------------------------------------------
+    def set_perturbation(self, values: Any, envs: Any = None) -> None:
+        """Give the cars of some environments new perturbation values.
+
+        The simulator applies the dynamics (``friction``, ``mass``, ``motor``, ``steer_gain``
+        multipliers and the ``steer_offset``), the actuation (``latency``: commands pass
+        through a FIFO of whole control steps, zero during an episode's first ``latency``
+        steps; ``action_noise``: uniform noise of that amplitude on each command, then
+        clipped to [-1, 1]) and the lidar (``lidar_noise``: Gaussian std on the normalised
+        ranges; ``lidar_dropout``: probability a ray reads max range) of
+        :mod:`arena.uncertainty`, all per car as arrays. The reward columns are the caller's
+        (:func:`arena.uncertainty.perturbed_reward`), the image columns have no camera here.
+        Until the first call, none of this work is done.
+
+        Args:
+            values: (B, N, n_params) in :data:`arena.uncertainty.PARAM_NAMES` order (numpy or
+                the device's arrays; latency whole steps in 0..MAX_LATENCY).
+            envs: (B,) bool, the environments to update (None: all).
+
+        Raises:
+            SimError: values of the wrong shape.
+        """
+        ops, b, n = self.ops, self.n_envs, self.n_cars
+        vals = ops.asarray(values)
+        if tuple(vals.shape) != (b, n, len(PARAM_NAMES)):
+            raise SimError(f"perturbation values must have shape {(b, n, len(PARAM_NAMES))}")
+        if not self.perturbed:
+            self.perturbed = True
+            self._fifo = ops.zeros((b, MAX_LATENCY + 1, n, 2))
+            zeros = ops.zeros((b, n))
+            self._lag = ops.zeros((b, n), dtype=ops.int)
+            self._noise_amp, self._lidar_noise, self._dropout = zeros, zeros, zeros
+        mask = (
+            ops.full((b,), True, dtype=ops.bool) if envs is None else ops.asarray(envs, ops.bool)
+        )[:, None]
+
+        def col(name: str, old: Array) -> Array:
+            return ops.where(mask, vals[..., INDEX[name]], old)
+
+        sc = self.scales
+        self.scales = Scales(*(col(f.name, getattr(sc, f.name)) for f in fields(Scales)))
+        lag = ops.cast(ops.where(mask, vals[..., LATENCY], ops.cast(self._lag, ops.float)), ops.int)
+        self._lag = lag
+        self._noise_amp = col("action_noise", self._noise_amp)
+        self._lidar_noise = col("lidar_noise", self._lidar_noise)
+        self._dropout = col("lidar_dropout", self._dropout)
+
+    def _advance_uncertainty(self, nature: Any) -> None:
+        """Before a step: the sampler's or the natures' new values (one implementation:
+        :meth:`arena.uncertainty.PerturbationState.advance`)."""
+        ops, cfg = self.ops, self.unc.cfg
+        acting = None
+        if cfg.mode == "adversarial":
+            if nature is None and self.nature is not None:
+                obs = ops.to_numpy(self.nature_obs())
+                acts = self.nature.act_batch(obs.reshape(-1, obs.shape[-1]))
+                nature = np.asarray(acts, dtype=np.float64).reshape(self.n_envs, self.n_cars, -1)
+            if nature is not None:
+                nature = ops.to_numpy(ops.asarray(nature))
+                acting = ops.to_numpy(self.state.active)
+        steps = ops.to_numpy(self.state.steps)
+        if self.unc.advance(self._unc_rng, steps, nature, acting):
+            self.set_perturbation(self.unc.values)
+
+    @property
+    def state_size(self) -> int:
+        """Length S of :meth:`global_state`: 10 per car, then k free parameters per car."""
+        k = 0 if self.uncertainty is None else len(self.uncertainty.free)
+        return self.n_cars * (STATE_FEATURES + k)
+
+    def global_state(self, st: RaceState | None = None) -> Array:
+        """(B, S) float32: the global state of every environment, as
+        :meth:`arena.env.RacingEnv.global_state` (per car x, y relative to the track's centre
+        in half-extents, cos and sin of yaw, vx, vy / max speed, yaw rate / π, s / lap,
+        race progress / race distance, racing 1/0; parked cars read zeros; then every car's
+        free perturbation parameters mapped to [-1, 1])."""
+        ops, st = self.ops, st if st is not None else self.state
+        car = st.car
+        poses = ops.stack([car.x, car.y, car.yaw], axis=-1)
+        velocity = ops.stack([car.vx, car.vy, car.r], axis=-1)
+        feats = global_state(
+            poses,
+            velocity,
+            st.s,
+            st.race_progress,
+            st.active,
+            self.track,
+            self.race_distance,
+            self.params.max_speed,
+            ops,
+        ).reshape(self.n_envs, -1)
+        if self.uncertainty is not None:
+            xi = ops.asarray(normalised(self.uncertainty, self.unc.raw))
+            feats = ops.concat([feats, xi.reshape(self.n_envs, -1)], axis=-1)
+        return ops.cast(feats, ops.float32)
+
+    def nature_obs(self) -> Array:
+        """(B, N, S + N) float32: each nature's observation, the global state then a one-hot
+        of its car (as the pybullet env's ``nature_car_i``)."""
+        return self._nature_obs(self.state)
+
+    def _nature_obs(self, st: RaceState) -> Array:
+        ops, n = self.ops, self.n_cars
+        state = self.global_state(st)[:, None, :] + ops.zeros(
+            (self.n_envs, n, 1), dtype=ops.float32
+        )
+        onehot = ops.cast(ops.eye(n), ops.float32)[None] + ops.zeros(
+            (self.n_envs, n, n), dtype=ops.float32
+        )
+        return ops.concat([state, onehot], axis=-1)
+
+    def _actuate(self, act: Array, st: RaceState) -> Array:
+        """Commands (B, N, 2) through each car's latency FIFO, plus its action noise: the
+        command applied at step t is the one given at ``t − latency``."""
+        ops, size = self.ops, MAX_LATENCY + 1
+        slot = ops.mod(st.steps, size)  # (B,)
+        write = (ops.arange(size)[None, :] == slot[:, None])[..., None, None]  # (B, L, 1, 1)
+        self._fifo = ops.where(write, act[:, None], self._fifo)
+        read = ops.mod(st.steps[:, None] - self._lag, size)  # (B, N)
+        idx = read[:, None, :, None] + ops.zeros(
+            (*read.shape[:1], 1, self.n_cars, 2), dtype=ops.int
+        )
+        cmd = ops.take_along(self._fifo, idx, 1)[:, 0]
+        noise = 2.0 * ops.uniform(self.rng, cmd.shape) - 1.0
+        cmd = ops.clip(cmd + noise * self._noise_amp[..., None], -1.0, 1.0)
+        return cmd * st.active[..., None]
+
+    def _jitter_lidar(self, obs: Array) -> Array:
+        """Observations (B, N, D) with noisy lidar (as :func:`arena.perception.jitter_lidar`:
+        Gaussian noise, dropped rays read 1, clipped to [0, 1])."""
+        ops, rays = self.ops, self.layout.n_rays
+        shape = (self.n_envs, self.n_cars, rays)
+        u1 = 1.0 - ops.uniform(self.rng, shape)  # (0, 1]: Box-Muller
+        u2 = ops.uniform(self.rng, shape)
+        gauss = ops.sqrt(-2.0 * ops.lib.log(u1)) * ops.cos(2.0 * math.pi * u2)
+        lidar = obs[..., :rays] + gauss * self._lidar_noise[..., None]
+        dropped = ops.uniform(self.rng, shape) < self._dropout[..., None]
+        lidar = ops.clip(ops.where(dropped, 1.0, lidar), 0.0, 1.0)
+        return ops.concat([ops.cast(lidar, obs.dtype), obs[..., rays:]], axis=-1)
 
     # ---- physics ----------------------------------------------------------------------------
     def _physics(
@@ -449,104 +634,73 @@ class BatchSim:
         return vector_observation(lidar, ego, ahead, opp, self.layout, ops)
 
     # ---- step -------------------------------------------------------------------------------
-    def step(self, actions: Array) -> StepResult:
+    def step(self, actions: Array, nature: Any = None) -> StepResult:
         """Advance every environment one control step.
 
         Args:
             actions: (B, N, 2) [steer, throttle] in [-1, 1] (NaN: no input; ±inf saturate).
+            nature: (B, N, k) the natures' actions (``adversarial`` uncertainty only).
         """
         ops, st = self.ops, self.state
+        if self.uncertainty is not None:
+            self._advance_uncertainty(nature)
         act = ops.asarray(actions)
         act = ops.clip(ops.where(ops.isnan(act), 0.0, act), -1.0, 1.0)  # NaN: no input
         act = act * st.active[..., None]
+        if self.perturbed:
+            act = self._actuate(act, st)
         old_car = st.car
         car, wall, touching = self._physics(old_car, act[..., 0], act[..., 1], st.active)
-        steps = st.steps + 1
-        now = ops.cast(steps, ops.float) * self.dt
         active = st.active
         dev = self.dev
-
+        # The race rules are arena.core's, the same code the pybullet env runs.
         s, d, heading, seg = dev.project(car.x, car.y)
-        ds = dev.delta_s(s, st.s)
-        cut = ops.abs(ds) > CUT_JUMP
-        progress = ops.where(active & ~cut, ds, 0.0)
-        race_progress = st.race_progress + progress
-
-        # Ordered gates, as tracks.LapCounter.
-        gate = self._gates[st.next_gate]
-        before = dev.delta_s(gate, st.s)
-        crossed = (ds > 0) & (ds <= self.max_jump) & (before > 0) & (before <= ds)
-        finish_line = crossed & (st.next_gate == 0)
-        lap_done = finish_line & (st.laps >= 0) & active
-        laps = ops.where(finish_line, st.laps + 1, st.laps)
-        next_gate = ops.where(crossed, st.next_gate + 1, st.next_gate)
-        next_gate = ops.where(next_gate >= self.n_gates, 0, next_gate)
-        first_cross = (st.laps < 0) & (laps == 0) & active
-        now_n = now[:, None]
-        line_time = ops.where(first_cross & ~st.grid_start[:, None], now_n, st.line_time)
-        lap_time = ops.where(lap_done, now_n - line_time, 0.0)
-        line_time = ops.where(lap_done, now_n, line_time)
-        laps_completed = ops.maximum(laps, 0)
-
-        heading_error = wrap_angle(car.yaw - heading, ops)
         left, right = dev.widths_at(s)
-        sin_h, cos_h = ops.sin(heading_error)[..., None], ops.cos(heading_error)[..., None]
-        wheel_d = d[..., None] + self._wheel_x * sin_h + self._wheel_y * cos_h
-        on = (wheel_d <= left[..., None]) & (wheel_d >= -right[..., None])
-        off_track = ~ops.any(on, axis=-1) & active
-        off_time = ops.where(off_track, st.off_time + self.dt, 0.0)
-
-        pair = active[..., :, None] & active[..., None, :]
-        contact = touching & pair
-        old_poses = ops.stack([old_car.x, old_car.y, old_car.yaw], axis=-1)
-        old_vel = ops.stack([old_car.vx, old_car.vy], axis=-1)
-        at_fault, closing = collision_blame(old_poses, old_vel, contact, ops=ops)
-        new_contact = contact & ~st.contact
-
-        newly_finished = active & (laps_completed >= self.laps)
-        finished = st.finished | newly_finished
-        finish_time = ops.where(newly_finished, now_n, st.finish_time)
-        rank_key = ops.where(finished, 1e12 - finish_time, race_progress)
-        positions = race_positions(ops.where(active | finished, rank_key, -1e12), ops)
-        gained = ops.where(active, st.positions - positions, 0)
-
-        w = self.window
-        slot = ops.cast(ops.mod(steps, w), ops.int)
-        oldest = ops.mod(steps + 1, w)
-        hist = st.history
-        onehot = (ops.arange(w)[None, :] == slot[:, None])[..., None]
-        hist = ops.where(onehot, race_progress[:, None, :], hist)
-        moved = race_progress - ops.take_along(hist, oldest.reshape(-1, 1, 1), 1)[:, 0, :]
-        warmed = (steps >= w)[:, None]
-        still = active & ~newly_finished
-        stuck = still & warmed & (moved < STUCK_DISTANCE)
-        lost = still & (off_time > self.off_track_limit)
-        terminated = newly_finished | stuck | lost
-        truncated = active & ~terminated & (steps >= self.max_cycles)[:, None]
-
-        terms = racing_terms(
-            progress, off_track, wall & active, at_fault, closing, gained, self.dt,
-            self.weights, ops,
+        sensed = Sensed(
+            s=s, d=d, heading=heading, yaw=car.yaw, left=left, right=right, wall=wall,
+            touching=touching, upright=None,
+            prev_poses=ops.stack([old_car.x, old_car.y, old_car.yaw], axis=-1),
+            prev_velocity=ops.stack([old_car.vx, old_car.vy], axis=-1),
         )  # fmt: skip
-        reward = terms["progress"]
-        for name in RACING_TERMS[1:]:
-            reward = reward + terms[name]
+        episode = EpisodeState(**{f.name: getattr(st, f.name) for f in fields(EpisodeState)})
+        ep, out = episode_step(ops, self.rules, episode, sensed)
+        self.outcome = out
+        terms, reward = out.terms, out.reward
+        terminated, truncated = out.terminated, out.truncated
+        lap_done, lap_time, laps_completed = out.lap_done, out.lap_time, ops.maximum(ep.laps, 0)
+        off_track, contact, new_contact = out.off_track, out.contact, out.new_contact
+        at_fault, closing = out.at_fault, out.closing
         done = terminated | truncated
-        new = RaceState(
-            car=car, s=s, d=d, heading=heading, segment=seg, next_gate=next_gate, laps=laps,
-            race_progress=race_progress, positions=positions, active=active & ~done,
-            finished=finished, finish_time=finish_time, off_time=off_time, line_time=line_time,
-            last_lap=ops.where(lap_done, lap_time, st.last_lap), contact=contact,
-            history=hist, steps=steps, grid_start=st.grid_start,
-        )  # fmt: skip
+        new = RaceState(car=car, d=d, heading=heading, segment=seg, **ep.__dict__)
         # Observations see the cars that are still racing, as the pybullet env's do.
         obs = self._observe(replace(new, active=active), self.scales)
+        if self.perturbed:
+            obs = self._jitter_lidar(obs)
+        reward_nominal, final_nature = reward, None
+        if self.uncertainty is not None:
+            values = ops.asarray(self.unc.values)
+            reward = ops.where(active, perturbed_reward(values, terms, "racing", reward), 0.0)
+            final_nature = self._nature_obs(replace(new, active=active))
+            self.final_nature_obs = final_nature
         env_done = ops.any(done, axis=1)
         final_obs = obs
         if self.auto_reset:
             start, slots = self.draw_starts(self.n_envs)
             new = _merge(env_done, self._fresh(start, slots), new, ops)
-            obs = ops.where(env_done[:, None, None], self._start_obs(start, slots), obs)
+            fresh_obs = self._start_obs(start, slots)
+            if self.uncertainty is not None:  # the new episodes' perturbations
+                ended = ops.to_numpy(env_done)
+                if ended.any():
+                    self.unc.start(self._unc_rng, envs=ended)
+                    self.set_perturbation(self.unc.values, envs=env_done)
+            if self.perturbed:
+                # A new episode starts with an empty latency FIFO; its first observation
+                # has the lidar noise of the env's levels now (without ``uncertainty=`` the
+                # caller sets the new episode's values after this step, with
+                # set_perturbation(..., envs=env_done)).
+                self._fifo = ops.where(env_done[:, None, None, None], 0.0, self._fifo)
+                fresh_obs = self._jitter_lidar(fresh_obs)
+            obs = ops.where(env_done[:, None, None], fresh_obs, obs)
         self.state = new
         self.obs = obs
         return StepResult(
@@ -554,7 +708,8 @@ class BatchSim:
             lap_done=lap_done, lap_time=lap_time, laps_completed=laps_completed,
             off_track=off_track, wall=wall & active, touching=ops.any(contact, axis=-1),
             contact=contact, new_contact=new_contact, at_fault=at_fault, closing=closing,
-            env_done=env_done, final_obs=final_obs,
+            env_done=env_done, final_obs=final_obs, reward_nominal=reward_nominal,
+            final_nature_obs=final_nature,
         )  # fmt: skip
 
     @property

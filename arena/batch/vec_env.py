@@ -225,4 +225,4 @@ class BatchVecEnv(VecEnv):
 def _dnf_reason(retired: bool, truncated: bool) -> str | None:
     if retired:
         return "retired"
-    return "timeout" if truncated else None
+    return "time_limit" if truncated else None

@@ -5,10 +5,19 @@ OpenAPI documentation is served at ``/docs`` (Swagger UI) and ``/openapi.json``.
 
 from fastapi import APIRouter
 
-from leaderboard.api.routes import health, leaderboard, races, submissions, tracks, users
+from leaderboard.api.deps import ERROR_RESPONSES
+from leaderboard.api.routes import (
+    health,
+    leaderboard,
+    races,
+    submissions,
+    tokens,
+    tracks,
+    users,
+)
 
-api_router = APIRouter(prefix="/api")
-for _module in (leaderboard, submissions, races, tracks, users, health):
+api_router = APIRouter(prefix="/api", responses=ERROR_RESPONSES)
+for _module in (leaderboard, submissions, races, tracks, users, tokens, health):
     api_router.include_router(_module.router)
 
 __all__ = ["api_router"]

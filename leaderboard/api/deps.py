@@ -1,5 +1,9 @@
 """Dependencies of the API routes, with short aliases: ``SessionDep``, ``SettingsDep``,
-``CurrentUser``, ``PageDep``.
+``CurrentUser``, ``PageDep``, ``IdPath``.
+
+Numbers from the URL are bounded where they are declared: an id (``IdPath``) fits the
+database's integer column (1 … 2³¹−1, PostgreSQL's ``integer``), a page number stays below
+:data:`MAX_PAGE`; anything larger is a 422, not a database overflow.
 
 The app keeps its settings and session factory on ``app.state`` (set by ``create_app``), so
 every app — one per test database — has its own.
@@ -10,16 +14,52 @@ from __future__ import annotations
 import hmac
 from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Annotated
+from typing import Annotated, Any
 
-from fastapi import Depends, Query, Request
+from fastapi import Depends, Path, Query, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from pydantic import BaseModel
 from sqlalchemy.orm import Session
 
 from leaderboard.auth import user_for_token
 from leaderboard.errors import Forbidden, NotAuthenticated
 from leaderboard.models import User
 from leaderboard.settings import Settings
+
+MAX_ID = 2**31 - 1  # the largest value of an id column (PostgreSQL integer)
+MAX_PAGE = 1_000_000  # page numbers past this are refused (offsets stay far below 2^63)
+
+
+class ErrorBody(BaseModel):
+    """An error answer: what went wrong, in one line."""
+
+    detail: str
+
+
+class ValidationErrorBody(BaseModel):
+    """A 422 answer: the request's fields that failed validation (a list, FastAPI's form), or
+    a bundle the validator refused (one line)."""
+
+    detail: str | list[dict[str, Any]]
+
+
+ERROR_RESPONSES: dict[int | str, dict[str, object]] = {
+    code: {"model": ErrorBody, "description": text}
+    for code, text in {
+        400: "bad request",
+        401: "missing, unknown or revoked API token",
+        403: "not allowed for this user",
+        404: "no such object",
+        409: "conflict (name taken, duplicate bundle, quota of submissions or versions)",
+        413: "request body too large",
+        429: "rate limit or upload quota reached (see Retry-After)",
+    }.items()
+}
+ERROR_RESPONSES[422] = {
+    "model": ValidationErrorBody,
+    "description": "invalid parameters, or an invalid bundle",
+}
+IdPath = Annotated[int, Path(ge=1, le=MAX_ID, description="an id (1 … 2^31 − 1)")]
 
 bearer = HTTPBearer(auto_error=False, description="an API token: `slipstream users add NAME`")
 
@@ -99,7 +139,7 @@ class PageParams:
 
 def page_params(
     settings: SettingsDep,
-    page: Annotated[int, Query(ge=1, description="page number, from 1")] = 1,
+    page: Annotated[int, Query(ge=1, le=MAX_PAGE, description="page number, from 1")] = 1,
     per_page: Annotated[int | None, Query(ge=1, le=200, description="rows per page")] = None,
 ) -> PageParams:
     """Pagination parameters (``per_page`` defaults to ``settings.page_size``)."""

@@ -23,7 +23,7 @@ WIDTH = 640  # px, the SVG viewBox; the CSS scales it to the column
 HEIGHT = 240  # px
 MARGIN_LEFT = 48  # px: room for the y tick labels
 MARGIN_RIGHT = 12
-MARGIN_TOP = 16  # px: room for the y axis label
+MARGIN_TOP = 22  # px: room for the y axis label above the top tick
 MARGIN_BOTTOM = 30  # px: room for the x tick labels
 N_TICKS = 5  # about this many ticks per axis
 MU_COLOUR = "#1d78d6"
@@ -93,7 +93,10 @@ def _axes(
     frame: _Frame, x_ticks: Sequence[float], y_ticks: Sequence[float], x_label: str, y_label: str
 ) -> str:
     """Grid lines, tick labels and the axis labels (y at the top left)."""
-    parts = [f'<text class="axis-label" x="4" y="{MARGIN_TOP - 2}">{escape(y_label)}</text>']
+    # The y label sits above the plot, right of the tick labels: clear of the top tick.
+    parts = [
+        f'<text class="axis-label" x="{MARGIN_LEFT}" y="{MARGIN_TOP - 9}">{escape(y_label)}</text>'
+    ]
     for v in y_ticks:
         y = frame.y(v)
         parts.append(

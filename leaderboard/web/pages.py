@@ -4,14 +4,24 @@
 page                          shows                                         JSON twin (``/api``)
 ============================  ============================================  =====================
 ``/``                         leaderboard: rank, name, author, ordinal, μ,  ``/leaderboard``
-                              σ, races, win rate (paginated)
-``/submissions/{id}``         versions, races, rating history chart         ``/submissions/{id}``
-``/races``                    all races, newest first (paginated)           ``/races``
-``/races/{id}``               results, lap-time chart, embedded 3D replay   ``/races/{id}``
+                              σ, races, win rate (paginated); ``?q=`` search
+``/submissions/{id}``         versions with validation races and reasons,   ``/submissions/{id}``
+                              every race (position, Δμ, Δσ, penalties,
+                              best lap), best laps by track, head to head,
+                              rating history chart
+``/races``                    all races, newest first (paginated); filters  ``/races``
+                              ``track``, ``kind``, ``submission``
+``/races/{id}``               results (race time + penalties = total), what ``/races/{id}``
+                              each penalty was for, events timeline linked
+                              to the 2D race map (``#t=12.3``), embedded 3D
+                              replay, lap-time chart; the signed-in owner's
+                              logs (``/api/races/{id}/logs``)
 ``/tracks``                   the race tracks, race counts, lap records     ``/tracks``
 ``/tracks/{name}``            track plot, records, recent races             ``/tracks/{name}``
 ``/tracks/{name}/plot.png``   the track plot image (cached in data_dir)
 ``/users/{name}``             a user's submissions                          ``/users/{name}``
+``/compete``                  every command from nothing to a ranked entry
+``/signin``, ``/signout``     sign in with an API token (owner-only logs)
 ============================  ============================================  =====================
 
 Pages read through :mod:`leaderboard.queries` (the same functions as the JSON API), so the
@@ -25,21 +35,22 @@ from collections.abc import Callable, Coroutine
 from datetime import datetime
 from functools import lru_cache
 from pathlib import Path
-from typing import Any
-from urllib.parse import quote
+from typing import Annotated, Any, Literal
+from urllib.parse import quote, urlencode
 
-from fastapi import APIRouter, Request
+from fastapi import APIRouter, Query, Request
 from fastapi.responses import FileResponse, HTMLResponse, Response
 from fastapi.routing import APIRoute
 from fastapi.templating import Jinja2Templates
 from markupsafe import Markup
 
 from leaderboard import auth, queries
-from leaderboard.api.deps import PageDep, SessionDep, SettingsDep
+from leaderboard.api.deps import IdPath, PageDep, SessionDep, SettingsDep
 from leaderboard.errors import NotFound
 from leaderboard.matchmaking import library_tracks, track_pool
 from leaderboard.models import MU0, SIGMA0
 from leaderboard.web.charts import car_hex, lap_time_svg, rating_history_svg
+from leaderboard.web.session import SignedIn, ViewerDep, session_router
 from leaderboard.web.trackplots import track_image
 from tracks import load_track
 from tracks.errors import TrackError
@@ -127,9 +138,11 @@ def make_templates() -> Jinja2Templates:
 templates = make_templates()
 
 
-def _render(request: Request, name: str, context: dict[str, Any]) -> HTMLResponse:
-    """Render template ``name`` with ``context``."""
-    return templates.TemplateResponse(request, name, context)
+def _render(
+    request: Request, name: str, context: dict[str, Any], viewer: SignedIn | None = None
+) -> HTMLResponse:
+    """Render template ``name`` with ``context`` (and the signed-in ``viewer``, if any)."""
+    return templates.TemplateResponse(request, name, {"viewer": viewer} | context)
 
 
 def _pager(page: queries.Page[Any], base_url: str) -> dict[str, Any]:
@@ -148,24 +161,69 @@ def viewer_url(viser_url: str) -> str:
 
 
 @web_router.get("/", response_class=HTMLResponse)
-def leaderboard_page(request: Request, session: SessionDep, pages: PageDep) -> HTMLResponse:
-    """The leaderboard: active submissions by ordinal, best first."""
-    page = queries.leaderboard(session, page=pages.page, per_page=pages.per_page)
-    context = {"nav": "leaderboard", "rows": page.items, "api_url": "/api/leaderboard"}
-    return _render(request, "leaderboard.html", context | _pager(page, "/"))
+def leaderboard_page(
+    request: Request,
+    session: SessionDep,
+    settings: SettingsDep,
+    pages: PageDep,
+    viewer: ViewerDep,
+    q: Annotated[str, Query(max_length=64, description="name or author contains")] = "",
+) -> HTMLResponse:
+    """The leaderboard: active submissions by ordinal, best first; ``q`` searches it."""
+    q = q.strip()
+    page = queries.leaderboard(
+        session,
+        page=1 if q else pages.page,
+        per_page=queries.MAX_PER_PAGE if q else pages.per_page,
+        provisional_races=settings.provisional_races,
+        max_age_s=settings.cache_max_age_s,
+    )
+    rows = page.items
+    if q:  # the snapshot is cached; filtering it costs nothing
+        needle = q.lower()
+        rows = [r for r in rows if needle in r.name.lower() or needle in r.author.lower()]
+    context = {"nav": "leaderboard", "rows": rows, "q": q, "api_url": "/api/leaderboard"}
+    pager = (
+        {"pages": 1, "page": 1, "total": len(rows), "base_url": "/?"} if q else _pager(page, "/")
+    )
+    return _render(request, "leaderboard.html", context | pager, viewer)
 
 
 @web_router.get("/races", response_class=HTMLResponse)
-def races_page(request: Request, session: SessionDep, pages: PageDep) -> HTMLResponse:
-    """All races, newest first."""
-    page = queries.races(session, page=pages.page, per_page=pages.per_page)
-    context = {"nav": "races", "races": page.items, "api_url": "/api/races"}
-    return _render(request, "races.html", context | _pager(page, "/races"))
+def races_page(
+    request: Request,
+    session: SessionDep,
+    pages: PageDep,
+    viewer: ViewerDep,
+    track: Annotated[str, Query(max_length=128)] = "",
+    kind: Annotated[Literal["", "validation", "ranked"], Query()] = "",
+    submission: Annotated[int | None, Query(ge=1, le=2**31 - 1)] = None,
+) -> HTMLResponse:
+    """All races, newest first; filtered by track, kind and submission."""
+    page = queries.races(
+        session,
+        page=pages.page,
+        per_page=pages.per_page,
+        track=track or None,
+        kind=kind or None,
+        submission_id=submission,
+    )
+    query = {"track": track, "kind": kind, "submission": submission or ""}
+    qs = urlencode({k: v for k, v in query.items() if v})
+    context = {
+        "nav": "races",
+        "races": page.items,
+        "filters": query,
+        "tracks": library_tracks(),
+        "api_url": "/api/races" + (f"?{qs}" if qs else ""),
+    }
+    base = "/races" + (f"?{qs}" if qs else "")
+    return _render(request, "races.html", context | _pager(page, base), viewer)
 
 
 @web_router.get("/races/{race_id}", response_class=HTMLResponse)
 def race_page(
-    request: Request, session: SessionDep, settings: SettingsDep, race_id: int
+    request: Request, session: SessionDep, settings: SettingsDep, race_id: IdPath, viewer: ViewerDep
 ) -> HTMLResponse:
     """One race: results, lap-time chart and the embedded 3D replay."""
     race = queries.race_detail(session, race_id)
@@ -173,6 +231,12 @@ def race_page(
     replay_url = None
     if race.viser_url is not None and (settings.replays_dir / Path(race.viser_url).name).is_file():
         replay_url = viewer_url(race.viser_url)
+    map_url = None
+    if (
+        race.replay_url is not None
+        and (settings.replays_dir / Path(race.replay_url).name).is_file()
+    ):
+        map_url = race.replay_url
     laps = [(e.name, e.lap_times) for e in race.entries]
     context = {
         "nav": "races",
@@ -180,19 +244,22 @@ def race_page(
         "entries": sorted(race.entries, key=lambda e: (e.position is None, e.position, e.car)),
         "replay_url": replay_url,
         "raw_replay_url": race.replay_url,
+        "map_replay_url": map_url,
         "laps_svg": lap_time_svg(laps),
         "api_url": f"/api/races/{race_id}",
+        # owner-only: the signed-in user's own cars' logs (nobody else's, never for visitors)
+        "logs": queries.race_logs(session, race_id, user_id=viewer.user_id) if viewer else [],
     }
-    return _render(request, "race.html", context)
+    return _render(request, "race.html", context, viewer)
 
 
 @web_router.get("/submissions/{submission_id}", response_class=HTMLResponse)
 def submission_page(
-    request: Request, session: SessionDep, pages: PageDep, submission_id: int
+    request: Request, session: SessionDep, pages: PageDep, submission_id: IdPath, viewer: ViewerDep
 ) -> HTMLResponse:
     """One submission: facts, rating history chart, versions and races."""
     sub = queries.submission_detail(session, submission_id, races=0)
-    races = queries.submission_races(
+    races = queries.submission_entries(
         session, submission_id, page=pages.page, per_page=pages.per_page
     )
     # The chart starts from the prior (race 0), then one point after each rated race.
@@ -202,10 +269,17 @@ def submission_page(
         "versions": sub.versions,
         "races": races.items,
         "history_svg": rating_history_svg(history),
+        "bests": queries.track_bests(session, submission_id),
+        "h2h": queries.head_to_head(session, submission_id),
+        "validation": queries.validation_races(session, submission_id),
+        "is_owner": viewer is not None and viewer.name == sub.author,
         "api_url": f"/api/submissions/{submission_id}",
     }
     return _render(
-        request, "submission.html", context | _pager(races, f"/submissions/{submission_id}")
+        request,
+        "submission.html",
+        context | _pager(races, f"/submissions/{submission_id}"),
+        viewer,
     )
 
 
@@ -226,21 +300,26 @@ def _track_facts(name: str) -> dict[str, Any]:
 
 
 @web_router.get("/tracks", response_class=HTMLResponse)
-def tracks_page(request: Request, session: SessionDep, settings: SettingsDep) -> HTMLResponse:
+def tracks_page(
+    request: Request, session: SessionDep, settings: SettingsDep, viewer: ViewerDep
+) -> HTMLResponse:
     """The tracks ranked races use, with race counts and lap records."""
     rows = [
-        t.model_dump() | _track_facts(t.name) for t in queries.tracks(session, track_pool(settings))
+        t.model_dump() | _track_facts(t.name)
+        for t in queries.tracks(session, track_pool(settings), max_age_s=settings.cache_max_age_s)
     ]
     context = {"nav": "tracks", "tracks": rows, "api_url": "/api/tracks"}
-    return _render(request, "tracks.html", context)
+    return _render(request, "tracks.html", context, viewer)
 
 
 @web_router.get("/tracks/{name}", response_class=HTMLResponse)
 def track_page(
-    request: Request, session: SessionDep, settings: SettingsDep, name: str
+    request: Request, session: SessionDep, settings: SettingsDep, name: str, viewer: ViewerDep
 ) -> HTMLResponse:
     """One track: its plot, the lap records and recent races."""
-    detail = queries.track_detail(session, name, known=track_pool(settings))
+    detail = queries.track_detail(
+        session, name, known=track_pool(settings), max_age_s=settings.cache_max_age_s
+    )
     facts = _track_facts(name)
     context = {
         "nav": "tracks",
@@ -250,18 +329,20 @@ def track_page(
         "image_url": f"/tracks/{quote(name, safe='')}/plot.png" if facts["length"] else None,
         "api_url": f"/api/tracks/{quote(name, safe='')}",
     }
-    return _render(request, "track.html", context)
+    return _render(request, "track.html", context, viewer)
 
 
 @web_router.get("/tracks/{name}/plot.png")
 def track_plot(request: Request, settings: SettingsDep, name: str) -> Response:
     """The track seen from above (PNG, drawn once and cached in the data folder)."""
-    path = track_image(name, settings.data_dir)
+    path = track_image(name, settings.data_dir, max_random=settings.random_track_images)
     return FileResponse(path, media_type="image/png", headers={"cache-control": "max-age=86400"})
 
 
 @web_router.get("/users/{name}", response_class=HTMLResponse)
-def user_page(request: Request, session: SessionDep, pages: PageDep, name: str) -> HTMLResponse:
+def user_page(
+    request: Request, session: SessionDep, pages: PageDep, name: str, viewer: ViewerDep
+) -> HTMLResponse:
     """A user and their submissions."""
     user = auth.get_user(session, name)
     subs = queries.submissions(session, page=pages.page, per_page=pages.per_page, author=name)
@@ -270,4 +351,22 @@ def user_page(request: Request, session: SessionDep, pages: PageDep, name: str) 
         "submissions": subs.items,
         "api_url": f"/api/users/{quote(name, safe='')}",
     }
-    return _render(request, "user.html", context | _pager(subs, f"/users/{quote(name, safe='')}"))
+    pager = _pager(subs, f"/users/{quote(name, safe='')}")
+    return _render(request, "user.html", context | pager, viewer)
+
+
+@web_router.get("/compete", response_class=HTMLResponse)
+def compete_page(request: Request, settings: SettingsDep, viewer: ViewerDep) -> HTMLResponse:
+    """From nothing to a ranked submission: every command (tested as written)."""
+    server = str(request.base_url).rstrip("/")
+    context = {
+        "nav": "compete",
+        "server": server,
+        "port": request.url.port or 8000,
+        "laps": settings.race_laps,
+        "max_cars": settings.max_cars,
+    }
+    return _render(request, "compete.html", context, viewer)
+
+
+web_router.include_router(session_router)

@@ -12,24 +12,37 @@ what ``viser-build-client --out-dir DIR`` copies, no Node needed. It is copied o
 ``<data_dir>/viewer/`` so that a deployment keeps the player that matches its recorded files
 (the player warns when a file's viser version differs). ``viser`` is found without importing
 it: the import alone costs the web process ~50 MiB.
+
+The player runs JavaScript that a ``.viser`` file or a websocket server sends it, so it is kept
+on a short leash (issue 13): ``/viewer/`` answers only when its ``playbackPath``, if any, is
+``/replays/<race id>.viser`` (same origin) and its other parameters are display settings
+(:data:`VIEWER_PARAMS`; no ``websocket``); anything else is 400. It is served with its own
+Content-Security-Policy (:func:`viewer_csp`): its two inline scripts allowed by hash (the
+loader and the code it unpacks), WebAssembly but no ``eval``/``new Function``, connections to
+the site only.
 """
 
 from __future__ import annotations
 
+import html
 import importlib.util
 import logging
 import os
+import re
 import shutil
 import tempfile
+from functools import lru_cache
 from os import PathLike
 from pathlib import Path
 from typing import Protocol
+from urllib.parse import parse_qsl
 
 from fastapi import FastAPI
 from starlette.responses import PlainTextResponse, Response
 from starlette.staticfiles import StaticFiles
-from starlette.types import Receive, Scope, Send
+from starlette.types import ASGIApp, Receive, Scope, Send
 
+from leaderboard.security import csp_hash
 from leaderboard.web.pages import STATIC_DIR
 
 log = logging.getLogger(__name__)
@@ -44,6 +57,24 @@ REPLAY_TYPES = {
 }
 REPLAY_MAX_AGE = 7 * 24 * 3600  # s: a race's replay never changes once written
 VIEWER_MAX_AGE = 3600  # s: the player changes only when viser is upgraded
+PLAYBACK_PATH = re.compile(r"^/replays/[0-9]{1,12}\.viser$")
+_VECTOR = re.compile(r"^-?[0-9.eE+-]{1,24}(,-?[0-9.eE+-]{1,24}){0,2}$")
+# The player's URL parameters that only change the display, with the values each may take.
+VIEWER_PARAMS: dict[str, re.Pattern[str]] = {
+    "playbackPath": PLAYBACK_PATH,
+    "hideViserLogo": re.compile(r"^[a-z0-9]{0,8}$"),
+    "darkMode": re.compile(r"^[a-z0-9]{0,8}$"),
+    "showStats": re.compile(r"^[a-z0-9]{0,8}$"),
+    "initialCameraPosition": _VECTOR,
+    "initialCameraLookAt": _VECTOR,
+    "initialCameraUp": _VECTOR,
+    "initialCameraFov": _VECTOR,
+    "initialCameraNear": _VECTOR,
+    "initialCameraFar": _VECTOR,
+}
+# The packed player: <script data-p="base88(zstd(css + js))" data-ss=.. data-cs=..>loader</script>
+_PACKED = re.compile(r'<script data-p="([^"]*)"([^>]*)>(.*?)</script>', re.S)
+_B88 = "!#$%()*+,-./0123456789:;=?@ABCDEFGHIJKLMNOPQRSTUVWXYZ[\\]^_abcdefghijklmnopqrstuvwxyz{|}~"
 
 
 class WebSettings(Protocol):
@@ -119,6 +150,114 @@ class CachedStaticFiles(StaticFiles):
         return response
 
 
+def _base88(text: str) -> bytes:
+    """The player loader's base-88 decoding (5 characters → 4 bytes, a short tail)."""
+    index = {c: i for i, c in enumerate(_B88)}
+    n, rest = divmod(len(text), 5)
+    out = bytearray()
+    for i in range(0, 5 * n, 5):
+        value = 0
+        for c in text[i : i + 5]:
+            value = value * 88 + index[c]
+        out += value.to_bytes(4, "big")
+    if rest > 1:
+        value = 0
+        for c in text[5 * n :]:
+            value = value * 88 + index[c]
+        out += value.to_bytes(rest - 1, "big")
+    return bytes(out)
+
+
+def inline_script_hashes(index_html: str) -> list[str]:
+    """CSP hashes of the player's inline scripts: its loader, and the code the loader unpacks.
+
+    viser's one-file build packs its CSS and JavaScript (zstd, base 88) into a ``data-p``
+    attribute; the loader unpacks them and adds the code as an inline module script.
+
+    Raises:
+        ValueError: the page is not a packed viser player (or zstandard is missing).
+    """
+    match = _PACKED.search(index_html)
+    if match is None:
+        raise ValueError("not a packed viser player")
+    import zstandard  # noqa: PLC0415 - a viser dependency; only to hash the player once
+
+    sizes = dict(re.findall(r'data-(ss|cs)="([0-9]+)"', match.group(2)))
+    css, code = int(sizes.get("ss", 0)), int(sizes.get("cs", 0))
+    raw = zstandard.ZstdDecompressor().decompress(
+        _base88(html.unescape(match.group(1))), max_output_size=css + code
+    )
+    return [csp_hash(match.group(3)), csp_hash(raw[css : css + code].decode())]
+
+
+@lru_cache(maxsize=8)
+def _viewer_csp(index: Path, mtime_ns: int) -> str:
+    try:
+        scripts = " ".join(inline_script_hashes(index.read_text(encoding="utf-8")))
+    except (ValueError, ImportError) as err:
+        log.warning("replay viewer: cannot hash its scripts (%s); it will not run", err)
+        scripts = "'none'"
+    return (
+        f"default-src 'none'; script-src {scripts} 'wasm-unsafe-eval'; "
+        "style-src 'self' 'unsafe-inline'; img-src 'self' data: blob:; font-src 'self' data:; "
+        "connect-src 'self' data: blob:; worker-src 'self' blob: data:; object-src 'none'; "
+        "base-uri 'none'; form-action 'none'; frame-ancestors 'self'"
+    )
+
+
+def viewer_csp(viewer_dir: Path) -> str:
+    """The Content-Security-Policy of ``/viewer/`` for the player in ``viewer_dir``.
+
+    Scripts: only the player's own two inline scripts (by SHA-256) and WebAssembly (its zstd
+    decoder); no ``'unsafe-eval'``, so a script message smuggled into a replay cannot run
+    (the player runs those with ``new Function``). Connections: the site only.
+    """
+    index = Path(viewer_dir) / "index.html"
+    return _viewer_csp(index, index.stat().st_mtime_ns)
+
+
+def viewer_query_error(query_string: str) -> str | None:
+    """Why a ``/viewer/`` query is refused, or None if it is allowed.
+
+    >>> viewer_query_error("playbackPath=/replays/7.viser&hideViserLogo") is None
+    True
+    >>> viewer_query_error("playbackPath=https://evil.example/x.viser")
+    "playbackPath must be /replays/<race id>.viser, not 'https://evil.example/x.viser'"
+    """
+    params = parse_qsl(query_string, keep_blank_values=True)
+    names = [name for name, _ in params]
+    for name, value in params:
+        pattern = VIEWER_PARAMS.get(name)
+        if pattern is None:
+            return f"unknown viewer parameter {name[:40]!r}"
+        if names.count(name) > 1:
+            return f"viewer parameter {name[:40]!r} given twice"
+        if not pattern.match(value):
+            if name == "playbackPath":
+                return f"playbackPath must be /replays/<race id>.viser, not {value[:80]!r}"
+            return f"bad value for viewer parameter {name!r}"
+    return None
+
+
+class ViewerGuard:
+    """ASGI wrapper of the player's static files: the page only with an allowed query."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        """Refuse (400) the player page with a query :func:`viewer_query_error` rejects."""
+        if scope["type"] == "http" and scope["path"] in (
+            f"{VIEWER_PREFIX}/",
+            f"{VIEWER_PREFIX}/index.html",
+        ):
+            error = viewer_query_error(scope.get("query_string", b"").decode("latin-1"))
+            if error is not None:
+                await PlainTextResponse(error, status_code=400)(scope, receive, send)
+                return
+        await self.app(scope, receive, send)
+
+
 async def _viewer_missing(scope: Scope, receive: Receive, send: Send) -> None:
     """An ASGI app for ``/viewer`` when viser is not installed: 404 with a hint."""
     response = PlainTextResponse(
@@ -142,9 +281,12 @@ def mount(app: FastAPI, settings: WebSettings) -> None:
     if viewer is None:
         app.mount(VIEWER_PREFIX, _viewer_missing, name="viewer")
     else:
+        app.state.viewer_csp = viewer_csp(viewer)
         app.mount(
             VIEWER_PREFIX,
-            CachedStaticFiles(directory=viewer, max_age=VIEWER_MAX_AGE, types={}, html=True),
+            ViewerGuard(
+                CachedStaticFiles(directory=viewer, max_age=VIEWER_MAX_AGE, types={}, html=True)
+            ),
             name="viewer",
         )
     replays = Path(settings.replays_dir)
@@ -156,4 +298,13 @@ def mount(app: FastAPI, settings: WebSettings) -> None:
     )
 
 
-__all__ = ["ensure_viewer", "mount", "viser_client_build"]
+__all__ = [
+    "VIEWER_PARAMS",
+    "ViewerGuard",
+    "ensure_viewer",
+    "inline_script_hashes",
+    "mount",
+    "viewer_csp",
+    "viewer_query_error",
+    "viser_client_build",
+]

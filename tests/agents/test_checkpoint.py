@@ -439,6 +439,8 @@ def _retensor(exported: Path, tmp_path: Path, edit: Callable[[dict[str, Any]], N
     [
         ("missing", r"lack tensor\(s\) action_net\.weight"),
         ("wrong shape", r"tensor action_net\.weight has shape \(3, 64\).*needs \(2, 64\)"),
+        # Same number of elements, other shape: a size check alone would let it through.
+        ("transposed", r"tensor action_net\.weight has shape \(64, 2\).*needs \(2, 64\)"),
         ("extra", r"unexpected tensor\(s\) log_std"),
         ("float64", r"tensor action_net\.bias is float64, expected float32"),
         ("nan", r"tensor action_net\.bias holds NaN"),
@@ -452,6 +454,8 @@ def test_wrong_tensors_are_a_clear_error(
             del t["action_net.weight"]
         elif case == "wrong shape":
             t["action_net.weight"] = np.zeros((3, 64), dtype=np.float32)
+        elif case == "transposed":
+            t["action_net.weight"] = np.ascontiguousarray(t["action_net.weight"].T)
         elif case == "extra":
             t["log_std"] = np.zeros(2, dtype=np.float32)
         elif case == "float64":

@@ -6,6 +6,7 @@ import json
 from pathlib import Path
 
 import jsonschema
+import numpy as np
 import pytest
 
 from agents.baselines import make_baseline
@@ -13,9 +14,17 @@ from arena.observations import ObservationLayout
 from arena.race import RESULT_SCHEMA, run_race
 from arena.sim import CarParams
 from leaderboard.cli import EXIT_USER_ERROR, main
-from tracks import list_tracks, load_track
+from tracks import Track, list_tracks, load_track
 
 LAYOUT = ObservationLayout(64, 3)
+GRAVITY = 9.81  # m/s²
+
+
+def ideal_lap_time(track: Track, car: CarParams) -> float:
+    """Seconds for a lap at the limit everywhere: min(top speed, √(μ g / |κ|)) along the line."""
+    limit = np.sqrt(car.friction * GRAVITY / np.maximum(np.abs(track.curvature), 1e-9))
+    speed = np.minimum(car.top_speed, limit)
+    return float(np.sum(track.segment_lengths / speed))
 
 
 @pytest.mark.parametrize("track", list_tracks())
@@ -27,14 +36,16 @@ def test_four_pursuit_cars_finish_every_builtin_track(track: str) -> None:
         seed=0,
         record=False,
     )
-    length = load_track(track).length
+    ideal = ideal_lap_time(load_track(track), CarParams())
     assert sorted(c.position for c in result.cars) == [1, 2, 3, 4]
     for car in result.cars:
         assert car.status == "finished", (track, car)
         assert car.laps_completed == 1
         (lap,) = car.lap_times
-        # Faster than top speed is impossible; slower than 1.5 m/s on average is not racing.
-        assert length / CarParams().top_speed < lap < length / 1.5
+        # Physics floor: no lap beats the grip- and top-speed-limited time; pursuit, which
+        # brakes for bends by a margin and starts from standstill, stays within 60 % of it
+        # (measured 1.09-1.49x on the built-in tracks).
+        assert ideal < lap < 1.6 * ideal, (track, lap, ideal)
     # Finishing order follows total time.
     ordered = result.by_position()
     times = [c.total_time for c in ordered]

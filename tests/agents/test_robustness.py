@@ -13,6 +13,7 @@ from agents.robustness import (
     GRID,
     evaluate_robustness,
     grid_points,
+    run_batch_episodes,
     run_episode,
     save_plot,
     summarise,
@@ -23,6 +24,7 @@ from arena import RacingEnv
 from arena.observations import ObservationLayout
 from arena.uncertainty import UncertaintyConfig, default_config
 from leaderboard.cli import main as cli_main
+from tracks import list_tracks
 
 SMALL_GRID = {"friction": (0.6, 1.0), "motor": (1.0,), "steer_offset": (0.0,), "latency": (0, 2)}
 
@@ -103,6 +105,77 @@ def test_evaluate_robustness_report_and_plot(tmp_path: Path) -> None:
     json.dumps(report.to_dict())  # JSON-able
 
 
+# A perturbation in the middle of the default robust set (arena.uncertainty.DEFAULT_DYNAMICS)
+# touching every simulator-side parameter, including the noisy ones.
+PARITY_POINT = {
+    "friction": 0.8,
+    "mass": 1.1,
+    "motor": 0.9,
+    "steer_gain": 0.9,
+    "steer_offset": 0.03,
+    "latency": 1,
+    "action_noise": 0.05,
+    "lidar_noise": 0.02,
+    "lidar_dropout": 0.05,
+}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("track", list_tracks())
+def test_pursuit_lap_times_agree_on_both_backends_under_a_fixed_perturbation(track: str) -> None:
+    # Issue 17's parity bar: within 10 % on every built-in track (measured: within 1 %).
+    batch = run_batch_episodes(pursuit(), track, [PARITY_POINT], [0.0], seed=0)[0]  # type: ignore[arg-type]
+    env = RacingEnv(track=track, n_cars=1, laps=1, uncertainty=UncertaintyConfig("fixed"))
+    try:
+        bullet = run_episode(env, pursuit(), seed=0, perturbation=PARITY_POINT)  # type: ignore[arg-type]
+    finally:
+        env.close()
+    assert batch.finished and bullet.finished
+    assert bullet.perturbation["latency"] == 1 and bullet.perturbation["friction"] == 0.8
+    assert abs(batch.time / bullet.time - 1.0) <= 0.10
+
+
+def test_batch_episodes_score_every_grid_point_as_pybullet_does() -> None:
+    points = [{"friction": 1.0}, {"friction": 0.6, "latency": 2}, {"steer_offset": 0.05}]
+    batch = run_batch_episodes(pursuit(), "oval", points, [0.0, 0.5, 0.0], seed=3)  # type: ignore[arg-type]
+    env = RacingEnv(track="oval", n_cars=1, laps=1, uncertainty=UncertaintyConfig("fixed"))
+    try:
+        bullet = [
+            run_episode(env, pursuit(), seed=3, perturbation=p, start=x)  # type: ignore[arg-type]
+            for p, x in zip(points, [0.0, 0.5, 0.0], strict=True)
+        ]
+    finally:
+        env.close()
+    for b, e in zip(batch, bullet, strict=True):
+        assert b.finished and e.finished
+        assert b.score == pytest.approx(e.score, rel=0.05)
+    # The perturbations act: latency and low grip are slower than nominal.
+    assert batch[1].score < batch[0].score
+
+
+@pytest.mark.slow
+def test_batch_robustness_evaluates_the_grid_and_confirms_the_worst_on_pybullet() -> None:
+    report = evaluate_robustness(
+        pursuit(),  # type: ignore[arg-type]
+        "oval",
+        n_random=3,
+        nature_steps=0,
+        scales=(0.5, 1.0),
+        grid={**SMALL_GRID, "steer_offset": (-0.05, 0.05)},
+        backend="batch",
+        confirm=2,
+    )
+    assert report.backend == "batch" and report.grid["n"] == 8
+    assert [row["scale"] for row in report.degradation] == [0.0, 0.5, 1.0]
+    assert report.random is not None and report.random["n"] == 3
+    scores = sorted(point["score"] for point in report.grid_races)
+    assert report.confirmed is not None and len(report.confirmed) == 2
+    for cell, worst in zip(report.confirmed, scores[:2], strict=True):
+        assert cell["batch"] == worst  # the worst grid points, in order
+        assert cell["pybullet"] == pytest.approx(cell["batch"], rel=0.10)
+    json.dumps(report.to_dict())
+
+
 def test_nature_view_rewards_are_minus_the_cars() -> None:
     cfg = default_config("adversarial")
     racer, nature = (
@@ -114,6 +187,7 @@ def test_nature_view_rewards_are_minus_the_cars() -> None:
             seed=0,
             env_kwargs={"uncertainty": cfg},
             reward_scale=2.0,
+            dnf_penalty=10.0,
             role=role,
         )
         for role in ("racer", "nature")
@@ -134,15 +208,23 @@ def test_nature_view_rewards_are_minus_the_cars() -> None:
     racer.nature = Constant([0.0] * len(cfg.free))
     for vec in (racer, nature):
         vec.reset()
-    car_rewards, nature_rewards = [], []
-    for _ in range(40):
-        _, r_car, _, _ = racer.step(np.array([[0.0, 0.6]], np.float32))
-        _, r_nat, _, _ = nature.step(np.zeros((1, len(cfg.free)), np.float32))
+    car_rewards, nature_rewards, dnf_steps = [], [], []
+    for t in range(400):
+        _, r_car, d_car, i_car = racer.step(np.array([[0.0, 0.6]], np.float32))
+        _, r_nat, d_nat, i_nat = nature.step(np.zeros((1, len(cfg.free)), np.float32))
         car_rewards.append(float(r_car[0]))
         nature_rewards.append(float(r_nat[0]))
-    # The nature slot sees minus the (scaled) reward of the car it perturbs: the car drives.
-    assert sum(nature_rewards) < -1.0
-    assert sum(car_rewards) > 1.0
+        assert d_car[0] == d_nat[0]
+        if d_car[0] and i_car[0]["dnf_reason"] is not None:
+            assert i_nat[0]["dnf_reason"] == i_car[0]["dnf_reason"]
+            dnf_steps.append(t)
+            break
+    # The same races (seeded alike, the natures' choices equal): on every step, the DNF
+    # step with its penalty included, the nature gets exactly minus its car's reward.
+    assert nature_rewards == [-r for r in car_rewards]
+    assert dnf_steps, "driving straight on at 0.6 throttle, the car must retire on oval"
+    assert car_rewards[-1] < -5.0  # the retiring step carries the DNF penalty (10)
+    assert sum(car_rewards[:-1]) > 1.0  # before that, the car drove
     racer.close()
     nature.close()
 
@@ -218,10 +300,21 @@ def test_cli_robustness(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> N
     assert (out / "pursuit_oval.png").is_file() and (out / "pursuit_oval.json").is_file()
 
 
+def test_cli_robustness_batch_backend(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    argv = ["robustness", "pursuit", "--backend", "batch", "--random", "0", "--nature-steps", "0"]
+    small = ["--friction", "0.6", "1.0", "--latency", "0", "2", "--motor", "1", "--scales", "1"]
+    code = cli_main([*argv, *small, "--confirm", "1", "--out", str(tmp_path), "--json", "-"])
+    assert code == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["backend"] == "batch" and report["grid"]["n"] == 12
+    assert len(report["confirmed"]) == 1 and report["confirmed"][0]["pybullet"] > 0.0
+
+
 def test_cli_robustness_user_errors(capsys: pytest.CaptureFixture[str]) -> None:
     assert cli_main(["robustness", "pursuit", "--track", "nowhere"]) == 2
     assert cli_main(["robustness", "no/such/policy.zip", "--track", "oval"]) == 2
     assert cli_main(["robustness", "pursuit", "--laps", "0"]) == 2
     assert cli_main(["robustness", "pursuit", "--starts", "0", "1.5"]) == 2
+    assert cli_main(["robustness", "pursuit", "--backend", "batch", "--confirm", "-1"]) == 2
     err = capsys.readouterr().err
-    assert err.count("slipstream: error:") == 4
+    assert err.count("slipstream: error:") == 5

@@ -177,9 +177,9 @@ def test_infos_describe_the_state_after_the_step() -> None:
         obs, _, _, _, infos = env.step({a: drive(obs[a]) for a in env.agents})
         for agent, info in infos.items():
             k = env.agent_index[agent]
-            assert info["speed"] == env.state.v_long[k]
+            assert info["speed"] == env.sim_state.v_long[k]
             assert info["s"] == pytest.approx(
-                env.track.project(env.state.poses[k : k + 1, :2]).s[0]
+                env.track.project(env.sim_state.poses[k : k + 1, :2]).s[0]
             )
             assert info["race_progress"] == env.race_progress[k]
             assert info["rank"] == env.positions[k]
@@ -213,17 +213,17 @@ def test_grid_order_places_car_k_at_slot_order_index_k() -> None:
     env.reset(seed=0, options={"grid_order": order})
     slots = env.track.start_grid(4)
     for k in range(4):
-        np.testing.assert_allclose(env.state.poses[k], slots[order.index(k)], atol=1e-6)
+        np.testing.assert_allclose(env.sim_state.poses[k], slots[order.index(k)], atol=1e-6)
     env.reset(seed=0)
-    np.testing.assert_allclose(env.state.poses, slots, atol=1e-6)
+    np.testing.assert_allclose(env.sim_state.poses, slots, atol=1e-6)
     env.close()
 
 
 def test_start_offset_moves_the_grid() -> None:
     env = RacingEnv(track="oval", n_cars=2)
     env.reset(seed=0, options={"start_offset": 20.0})
-    np.testing.assert_allclose(env.state.poses, env.track.start_grid(2, offset=20.0), atol=1e-6)
-    s = env.track.project(env.state.poses[:, :2]).s
+    np.testing.assert_allclose(env.sim_state.poses, env.track.start_grid(2, offset=20.0), atol=1e-6)
+    s = env.track.project(env.sim_state.poses[:, :2]).s
     assert np.all((s > 17.0) & (s < 20.0))  # just behind the moved start line
     env.close()
 
@@ -232,7 +232,7 @@ def test_start_offset_moves_the_grid() -> None:
 def test_mid_lap_start_counts_race_progress_from_the_start_line(offset: float) -> None:
     env = RacingEnv(track="oval", n_cars=2)  # 94 m long: 60 m is 34 m before the line
     _, infos = env.reset(seed=0, options={"start_offset": offset})
-    s = env.track.project(env.state.poses[:, :2]).s
+    s = env.track.project(env.sim_state.poses[:, :2]).s
     expected = env.track.delta_s(s, 0.0)  # the offset once, not twice
     got = [infos[a]["race_progress"] for a in env.agents]
     np.testing.assert_allclose(got, expected, atol=1e-9)
@@ -249,8 +249,8 @@ def test_reverse_direction_drives_the_track_the_other_way() -> None:
     drive = pursuit_driver(env)
     obs, _ = env.reset(seed=0, options={"direction": "reverse"})
     assert env.track is not env.base_track
-    yaw = env.state.poses[0, 2]
-    base_heading = env.base_track.project(env.state.poses[:, :2]).heading[0]
+    yaw = env.sim_state.poses[0, 2]
+    base_heading = env.base_track.project(env.sim_state.poses[:, :2]).heading[0]
     assert np.cos(yaw - base_heading) < -0.99  # facing against the base track's direction
     while env.agents:
         obs, _, term, _, infos = env.step({"car_0": drive(obs["car_0"])})
@@ -266,9 +266,9 @@ def test_random_direction_and_offset_follow_the_seed() -> None:
     seen = set()
     for seed in range(8):
         env.reset(seed=seed, options=options)
-        first = (env.track.name, env.state.poses.tobytes())
+        first = (env.track.name, env.sim_state.poses.tobytes())
         env.reset(seed=seed, options=options)
-        assert (env.track.name, env.state.poses.tobytes()) == first
+        assert (env.track.name, env.sim_state.poses.tobytes()) == first
         seen.add(first[0])
     assert seen == {"oval", "oval-reversed"}
     env.close()

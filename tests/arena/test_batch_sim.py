@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from typing import Any
 
 import numpy as np
 import pytest
@@ -19,6 +20,15 @@ from arena.batch.vec_env import BatchVecEnv
 from arena.batch.xp import DeviceError, get_ops
 from arena.env import RacingEnv
 from arena.lidar import Lidar
+from arena.rewards import RACING_TERMS
+from arena.sim import SimError
+from arena.uncertainty import (
+    INDEX,
+    DynamicsBounds,
+    RewardBounds,
+    UncertaintyConfig,
+    nominal_values,
+)
 from tests.arena.conftest import drag_strip, grid_at, pose_at
 from tracks import load_track
 
@@ -183,7 +193,7 @@ def test_vec_env_slots_and_episode_infos() -> None:
     info = infos[0]
     assert info["TimeLimit.truncated"] and not info["cut_short"]
     assert info["episode"]["l"] == 30 and info["terminal_observation"].shape == obs[0].shape
-    assert info["dnf_reason"] == "timeout"
+    assert info["dnf_reason"] == "time_limit"
 
 
 def test_unknown_devices_are_user_errors_and_numpy_never_imports_torch() -> None:
@@ -195,3 +205,104 @@ def test_unknown_devices_are_user_errors_and_numpy_never_imports_torch() -> None
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+# ---- model uncertainty on the batched simulator ----------------------------------------------
+
+
+def _values(b: int, n: int, **given: Any) -> np.ndarray:
+    """(b, n, P) perturbation values: nominal, with ``given`` per env (lists) or for all."""
+    out = np.tile(nominal_values(), (b, n, 1))
+    for name, value in given.items():
+        out[..., INDEX[name]] = np.asarray(value, dtype=np.float64).reshape(-1, 1)
+    return out
+
+
+@pytest.mark.parametrize("device", ["numpy", "torch:cpu"])
+def test_latency_delays_each_car_by_exactly_its_steps(device: str) -> None:
+    sim = BatchSim("oval", 3, 1, auto_reset=False, device=device, dtype="float64")
+    sim.set_perturbation(_values(3, 1, latency=[0, 1, 3]))
+    sim.reset()
+    assert sim.perturbed
+    xs = []
+    for act in _random_actions(4, (1, 1, 2), 40):
+        sim.step(np.repeat(act, 3, axis=0))  # the same commands in every env
+        xs.append(sim.ops.to_numpy(sim.state.car.x)[:, 0].copy())
+    x = np.array(xs)
+    np.testing.assert_allclose(x[1:, 1], x[:-1, 0], atol=1e-9)
+    np.testing.assert_allclose(x[3:, 2], x[:-3, 0], atol=1e-9)
+    assert np.all(x[:3, 2] == x[0, 2])  # no input during the first 3 steps: parked
+
+
+def test_dynamics_parameters_are_per_car_and_per_env_and_envs_can_be_updated_alone() -> None:
+    sim = BatchSim("oval", 2, 2, auto_reset=False)
+    assert not sim.perturbed  # nominal: no uncertainty work at all
+    sim.set_perturbation(_values(2, 2, motor=[1.0, 1.2]))
+    sim.set_perturbation(_values(2, 2, friction=0.5, steer_offset=0.1), envs=[True, False])
+    np.testing.assert_array_equal(sim.scales.motor, [[1.0, 1.0], [1.2, 1.2]])
+    np.testing.assert_array_equal(sim.scales.friction, [[0.5, 0.5], [1.0, 1.0]])
+    np.testing.assert_array_equal(sim.scales.steer_offset, [[0.1, 0.1], [0.0, 0.0]])
+    sim.reset()
+    for _ in range(30):
+        sim.step(np.tile([0.0, 1.0], (2, 2, 1)))
+    speed = np.hypot(sim.state.car.vx, sim.state.car.vy)
+    assert speed[1, 0] > speed[0, 0]  # more motor (and full grip) is faster
+    assert np.all(np.abs(sim.state.car.steering[0]) > 0.05)  # the trim steers env 0 only
+    assert np.all(np.abs(sim.state.car.steering[1]) < 1e-9)
+    with pytest.raises(SimError, match="shape"):
+        sim.set_perturbation(np.zeros((2, 3, 4)))
+
+
+def test_lidar_noise_and_dropout_and_action_noise() -> None:
+    sim = BatchSim("oval", 3, 1, auto_reset=False, seed=0)
+    rays = sim.layout.n_rays
+    clean = sim.reset()[..., :rays]
+    sim.set_perturbation(
+        _values(3, 1, lidar_dropout=[0.0, 1.0, 0.0], lidar_noise=[0.05, 0.0, 0.0],
+                action_noise=[0.0, 0.0, 0.2])
+    )  # fmt: skip
+    noisy = sim.reset()[..., :rays]
+    assert np.all(noisy[1] == 1.0)  # every ray dropped reads max range
+    np.testing.assert_array_equal(noisy[2], clean[2])
+    err = (noisy[0] - clean[0]).ravel()
+    assert 0.03 < err.std() < 0.07 and np.all((noisy[0] >= 0) & (noisy[0] <= 1))
+    steer = []
+    for _ in range(20):
+        sim.step(np.tile([0.0, 0.5], (3, 1, 1)))
+        steer.append(sim.state.car.steering[:, 0].copy())
+    s = np.abs(np.array(steer))
+    p = sim.params
+    assert np.all(s[:, :2] == 0.0)  # no noise: straight on
+    assert 0.0 < s[:, 2].max() <= 0.2 * p.max_steer + 1e-9  # noise within its amplitude
+
+
+def test_uncertainty_config_drives_the_simulator_through_automatic_resets() -> None:
+    cfg = UncertaintyConfig(
+        "sample", dynamics=DynamicsBounds(friction=(0.6, 1.2)),
+        reward=RewardBounds(noise=0.05, progress=(0.5, 1.5)),
+    )  # fmt: skip
+    sim = BatchSim("oval", 4, 2, seed=0, uncertainty=cfg, stuck_time=1.0)
+    sim.reset(seed=0)
+    fric = sim.unc.values[..., INDEX["friction"]].copy()
+    assert np.all(sim.scales.friction == fric)  # the simulator acts on what was drawn
+    ended = np.zeros(4, dtype=bool)
+    # Races 0-1 drive, races 2-3 stay parked: their cars retire as stuck after 1 s and
+    # those races restart (with new draws); the driving races keep theirs.
+    actions = np.zeros((4, 2, 2))
+    actions[:2, :, 1] = 0.8
+    for _ in range(40):
+        values = sim.unc.values.copy()  # this step's values (the reward noise is redrawn)
+        res = sim.step(actions)
+        values[..., INDEX["reward_noise"]] = sim.unc.values[..., INDEX["reward_noise"]]
+        want = values[..., INDEX["w_progress"]] * res.terms["progress"]
+        want = want + values[..., INDEX["reward_noise"]]
+        for name in RACING_TERMS[1:]:
+            want = want + res.terms[name]
+        if not res.env_done.any():  # every car racing: each gets its perturbed reward
+            np.testing.assert_allclose(res.reward, want, atol=1e-12)
+            assert not np.allclose(res.reward, res.reward_nominal)
+        ended |= res.env_done
+    assert ended[2:].all() and not ended[:2].any()
+    new = sim.unc.values[..., INDEX["friction"]]
+    assert np.array_equal(new[:2], fric[:2]) and not np.array_equal(new[2:], fric[2:])
+    assert np.array_equal(sim.scales.friction, new)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from agents.policy import PolicyError
-from agents.train import TrainArgs, main, parse_args
+from agents.train import TrainArgs, main, parse_args, procedural_groups
 
 
 def test_backend_flags_parse_and_bad_combinations_are_user_errors(tmp_path: Path) -> None:
@@ -18,8 +18,14 @@ def test_backend_flags_parse_and_bad_combinations_are_user_errors(tmp_path: Path
     assert (args.backend, args.batch_device) == ("batch", "torch:cpu")
     with pytest.raises(PolicyError, match="backend"):
         main(TrainArgs(backend="warp", out=tmp_path))
-    with pytest.raises(PolicyError, match="batch"):
-        main(TrainArgs(backend="batch", procedural=0.5, out=tmp_path))
+    with pytest.raises(PolicyError, match="procedural"):
+        main(TrainArgs(backend="batch", procedural=1.5, out=tmp_path))
+    with pytest.raises(PolicyError, match="uncertainty"):
+        main(TrainArgs(backend="batch", uncertainty="chaos", out=tmp_path))
+    # The share of generated tracks is a share of race groups (one track per group).
+    assert procedural_groups(TrainArgs(tracks=["oval", "bean"], procedural=0.5)) == 2
+    assert procedural_groups(TrainArgs(tracks=["oval"], procedural=0.2)) == 1
+    assert procedural_groups(TrainArgs(tracks=["oval"], procedural=0.0)) == 0
 
 
 def test_tiny_batch_training_run_learns_and_exports_a_bullet_ready_policy(tmp_path: Path) -> None:
@@ -60,3 +66,103 @@ def test_tiny_batch_training_run_learns_and_exports_a_bullet_ready_policy(tmp_pa
             obs, *_ = env.step({"car_0": action, "car_1": np.zeros(2)})
     finally:
         env.close()
+
+
+@pytest.mark.slow
+def test_batched_natures_are_exactly_zero_sum_with_their_cars() -> None:
+    from agents.baselines import make_baseline
+    from agents.batch_rarl import BatchNatureVecEnv, _Given
+    from agents.selfplay import PolicyDriver
+    from arena.batch.vec_env import BatchVecEnv
+    from arena.observations import ObservationLayout
+    from arena.uncertainty import INDEX, default_config
+
+    cfg = default_config("adversarial")  # every step, 10 % of each interval per step
+    racer = PolicyDriver(make_baseline("pursuit", ObservationLayout(64, 3)))
+
+    def racers() -> BatchVecEnv:
+        return BatchVecEnv(
+            ["oval"], n_envs=2, n_cars=2, seed=0, reward_scale=2.0, reverse=True,
+            sim_kwargs={"uncertainty": cfg},
+        )  # fmt: skip
+
+    natures = BatchNatureVecEnv(racers())
+    natures.racer = racer
+    twin = racers()  # the same races, stepped directly with the same nature actions
+    assert natures.num_envs == twin.num_envs == 8  # 2 tracks views x 2 races x 2 cars
+    assert natures.observation_space.shape == (2 * (10 + len(cfg.free)) + 2,)
+    assert natures.action_space.shape == (len(cfg.free),)
+    obs = natures.reset()
+    twin_obs = twin.reset()
+    assert obs.shape == (8, 2 * (10 + len(cfg.free)) + 2)
+    rng = np.random.default_rng(0)
+    for _ in range(30):
+        act = rng.uniform(-1, 1, (8, len(cfg.free))).astype(np.float32)
+        act[:4] = -1.0  # the forward races' natures push to the lower bounds
+        _, r_nat, d_nat, _ = natures.step(act)
+        for k, sim in enumerate(twin.sims):
+            sim.nature = _Given(act[4 * k : 4 * k + 4].astype(np.float64))
+        twin_obs, r_car, d_car, _ = twin.step(racer.act_batch(twin_obs))
+        np.testing.assert_array_equal(r_nat, -r_car)  # exactly zero-sum, slot by slot
+        np.testing.assert_array_equal(d_nat, d_car)
+    fric = natures.racers.sims[0].unc.values[..., INDEX["friction"]]
+    assert np.all(fric == pytest.approx(0.6))  # nature reached the bound it pushed to
+
+
+def _mean_reward(policy_path: str) -> float:
+    """Mean per-step reward of a checkpoint's deterministic actions on a held-out track
+    (bean) under the default domain-randomisation set, fixed seed."""
+    from agents.loading import load_policy
+    from arena.batch.vec_env import BatchVecEnv
+    from arena.uncertainty import default_config
+
+    policy = load_policy(policy_path)
+    env = BatchVecEnv(
+        ["bean"], n_envs=8, n_cars=2, seed=0, sim_kwargs={"uncertainty": default_config("sample")}
+    )
+    obs, total = env.reset(), 0.0
+    for _ in range(300):
+        obs, reward, _, _ = env.step(policy.act_batch(obs))
+        total += float(reward.mean())
+    return total / 300
+
+
+@pytest.mark.slow
+def test_domain_randomised_batch_training_on_generated_tracks_improves_the_reward(
+    tmp_path: Path,
+) -> None:
+    def run(steps: int) -> dict:
+        return main(
+            TrainArgs(
+                backend="batch", tracks=["oval"], n_cars=2, n_envs=8, total_timesteps=steps,
+                n_steps=32, batch_size=512, n_epochs=4, net_arch=[32, 32], learning_rate=1e-3,
+                eval_every=0, out=tmp_path, run_name=f"dr-{steps}", progress_bar=False, seed=3,
+                uncertainty="sample", procedural=0.5,
+            )
+        )  # fmt: skip
+
+    before, after = run(1024), run(16384)  # one rollout vs sixteen, the same seed
+    training = after["training"]
+    assert training["steps"] >= 16384
+    # One generated group (and its reversed twin), redrawn every 8,192 rollout steps.
+    assert len(training["generated_tracks"]) == 2
+    assert training["generated_tracks_drawn"] >= 2  # every 4 rollouts of 2,048 steps
+    recorded = after["args"]
+    assert (recorded["backend"], recorded["uncertainty"]) == ("batch", "sample")
+    assert _mean_reward(after["policy"]) > _mean_reward(before["policy"]) + 0.05
+
+
+@pytest.mark.slow
+def test_adversarial_batch_training_alternates_racer_and_batched_natures(tmp_path: Path) -> None:
+    summary = main(
+        TrainArgs(
+            backend="batch", tracks=["oval"], n_cars=2, n_envs=4, total_timesteps=2048,
+            n_steps=32, batch_size=256, n_epochs=2, net_arch=[16, 16], eval_every=0,
+            out=tmp_path, run_name="rarl", progress_bar=False, seed=1,
+            uncertainty="adversarial", nature_every=512, nature_steps=512,
+        )
+    )  # fmt: skip
+    run_dir = tmp_path / "rarl"
+    assert summary["training"]["steps"] >= 2048
+    assert (run_dir / "nature_sb3.zip").is_file()  # the nature that was trained alongside
+    assert any((run_dir / "tb_nature").rglob("events.out.tfevents.*"))

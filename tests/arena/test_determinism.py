@@ -120,10 +120,10 @@ def test_random_grid_follows_the_seed() -> None:
     grids = {}
     for seed in (1, 2):
         env.reset(seed=seed, options={"grid_order": "random"})
-        grids[seed] = (env.grid_order.tolist(), env.state.poses.copy())
+        grids[seed] = (env.grid_order.tolist(), env.sim_state.poses.copy())
         env.reset(seed=seed, options={"grid_order": "random"})
         assert env.grid_order.tolist() == grids[seed][0]
-        np.testing.assert_array_equal(env.state.poses, grids[seed][1])
+        np.testing.assert_array_equal(env.sim_state.poses, grids[seed][1])
     assert sorted(grids[1][0]) == list(range(8))
     assert grids[1][0] != grids[2][0]
     assert not np.array_equal(grids[1][1], grids[2][1])

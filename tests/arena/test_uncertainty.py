@@ -10,6 +10,7 @@ import pybullet as pb
 import pytest
 from pettingzoo.test import parallel_api_test
 
+import arena
 from arena import RacingEnv
 from arena.perception import jitter_image, jitter_lidar
 from arena.rewards import RACING_TERMS
@@ -21,12 +22,15 @@ from arena.uncertainty import (
     EpisodeRandomisation,
     PerceptionBounds,
     Perturbation,
+    PerturbationState,
     RewardBounds,
     UncertaintyConfig,
     UncertaintyError,
     default_config,
     nature_values,
     normalised,
+    perturbed_reward,
+    sample_values,
 )
 from tests.arena.conftest import pursuit_driver
 
@@ -249,9 +253,12 @@ def test_action_noise_is_bounded() -> None:
 
 
 @pytest.mark.parametrize("acts", ["reset", "step"])
-def test_nature_and_its_car_sum_to_zero_every_step(acts: str) -> None:
+@pytest.mark.parametrize("backend", ["pybullet", "batch"])
+def test_nature_and_its_car_sum_to_zero_every_step(acts: str, backend: str) -> None:
     cfg = default_config("adversarial", nature_acts=acts, reward=RewardBounds(noise=0.3))
-    env = RacingEnv(track="chicanes", n_cars=3, uncertainty=cfg, max_cycles=300)
+    env = arena.parallel_env(
+        backend=backend, track="chicanes", n_cars=3, uncertainty=cfg, max_cycles=300
+    )
     assert env.possible_agents[3:] == ["nature_car_0", "nature_car_1", "nature_car_2"]
     rng = np.random.default_rng(0)
     obs, _ = env.reset(seed=0)
@@ -471,3 +478,81 @@ def test_image_jitter() -> None:
         red, brightness=0, contrast=1, hue=1 / 3, noise_std=0, shift=0, shadow=0, rng=rng
     )
     assert turned[0, 0, 1] > 150 and turned[0, 0, 0] < 50  # a third of a turn: red to green
+
+
+# ---- the array-shaped implementation shared by both backends ---------------------------------
+
+
+def test_batched_draws_have_a_batch_axis_and_stay_in_the_box() -> None:
+    values = sample_values(WIDE, np.random.default_rng(0), (64, 4))
+    assert values.shape == (64, 4, len(PARAM_NAMES))
+    flat = values.reshape(-1, len(PARAM_NAMES))
+    assert np.all(flat >= WIDE.lows) and np.all(flat <= WIDE.highs)
+    assert set(np.unique(flat[:, INDEX["latency"]])) == {0.0, 1.0, 2.0}
+    # One race (an int) draws exactly what it drew before the batch axis existed.
+    one = sample_values(WIDE, np.random.default_rng(1), 4)
+    assert one.shape == (4, len(PARAM_NAMES))
+
+
+def test_nature_map_is_the_same_row_by_row_and_as_a_batch() -> None:
+    cfg = default_config("adversarial")
+    rng = np.random.default_rng(2)
+    act = rng.uniform(-1.5, 1.5, (8, 3, len(cfg.free)))
+    current = sample_values(default_config("sample"), rng, (8, 3))
+    batch = nature_values(cfg, act, current, rate=0.1)
+    rows = np.stack([nature_values(cfg, act[b], current[b], rate=0.1) for b in range(8)])
+    np.testing.assert_array_equal(batch, rows)
+    np.testing.assert_allclose(
+        normalised(cfg, nature_values(cfg, act, current)), np.clip(act, -1, 1)
+    )
+
+
+def test_perturbation_state_schedules_per_race() -> None:
+    dyn = DynamicsBounds(friction=(0.6, 1.2))
+    rng = np.random.default_rng(0)
+    every = PerturbationState(UncertaintyConfig("sample", "every_k", 5, dynamics=dyn), (3, 2))
+    every.start(rng)
+    first = every.values.copy()
+    # Race 1 is at step 5 (a redraw), races 0 and 2 are not.
+    assert every.advance(rng, np.array([3, 5, 0])) is True
+    fric = INDEX["friction"]
+    assert np.array_equal(every.values[[0, 2], :, fric], first[[0, 2], :, fric])
+    assert not np.array_equal(every.values[1, :, fric], first[1, :, fric])
+    # A new episode in race 2 only.
+    before = every.values.copy()
+    every.start(rng, envs=np.array([False, False, True]))
+    assert np.array_equal(every.values[:2], before[:2])
+    assert not np.array_equal(every.values[2, :, fric], before[2, :, fric])
+
+    fixed = PerturbationState(UncertaintyConfig("fixed"), (2, 2))
+    fixed.start(rng, given={"latency": [1, 3], "friction": 0.7})
+    assert fixed.values[:, :, INDEX["latency"]].tolist() == [[1, 3], [1, 3]]
+    with pytest.raises(UncertaintyError, match="fixed"):
+        every.start(rng, given={"friction": 0.7})
+
+
+def test_perturbation_state_nature_moves_freely_first_then_rate_limited() -> None:
+    cfg = default_config("adversarial")  # acts every step, 10 % of each interval per step
+    state = PerturbationState(cfg, (2, 1))
+    state.start(np.random.default_rng(0))
+    low = -np.ones((2, 1, len(cfg.free)))
+    state.advance(np.random.default_rng(0), np.array([0, 0]), low)
+    fric = INDEX["friction"]
+    assert state.values[:, 0, fric].tolist() == [0.6, 0.6]  # the first choice is free
+    acting = np.array([[True], [False]])  # race 1's car is out: its nature does not act
+    state.advance(np.random.default_rng(0), np.array([1, 1]), -low, acting)
+    assert state.values[0, 0, fric] == pytest.approx(0.6 + 0.1 * 0.6)
+    assert state.values[1, 0, fric] == 0.6
+    with pytest.raises(UncertaintyError, match="shape"):
+        state.advance(np.random.default_rng(0), 2, np.zeros((2, 1, 1)))
+
+
+def test_perturbed_reward_weights_each_term_and_adds_the_noise() -> None:
+    values = Perturbation.from_mapping(
+        {"w_progress": 2.0, "w_collision": 0.5, "reward_noise": [0.1, -0.1]}, 2
+    ).values
+    terms = {name: np.array([1.0, 2.0]) for name in RACING_TERMS}
+    racing = perturbed_reward(values, terms, "racing", np.zeros(2))
+    np.testing.assert_allclose(racing, [2 + 1 + 1 + 0.5 + 1 + 0.1, 4 + 2 + 2 + 1 + 2 - 0.1])
+    np.testing.assert_allclose(perturbed_reward(values, terms, "progress", np.zeros(2)), [2.1, 3.9])
+    np.testing.assert_allclose(perturbed_reward(values, terms, "fn", np.ones(2)), [1.1, 0.9])

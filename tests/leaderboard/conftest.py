@@ -17,6 +17,7 @@ Reusable by every test under ``tests/leaderboard``:
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import socket
@@ -52,6 +53,24 @@ class Account:
     def headers(self) -> dict[str, str]:
         """The ``Authorization`` header for this user."""
         return {"Authorization": f"Bearer {self.token}"}
+
+
+# Starlette's TestClient sends "Host: testserver"; the service serves 127.0.0.1/localhost only.
+TEST_HOSTS = ["127.0.0.1", "localhost", "testserver"]
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _test_hosts() -> Iterator[None]:
+    """Let every app built in these tests (TestClient included) answer the test hosts."""
+    before = os.environ.get("SLIPSTREAM_ALLOWED_HOSTS")
+    os.environ["SLIPSTREAM_ALLOWED_HOSTS"] = json.dumps(TEST_HOSTS)
+    try:
+        yield
+    finally:
+        if before is None:
+            os.environ.pop("SLIPSTREAM_ALLOWED_HOSTS", None)
+        else:
+            os.environ["SLIPSTREAM_ALLOWED_HOSTS"] = before
 
 
 @pytest.fixture

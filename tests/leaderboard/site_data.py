@@ -27,6 +27,7 @@ from submissions.jobs import JobResult, RaceJob
 SKILL = {"pursuit": 3.0, "gap": 2.0, "random": 1.0}  # who beats whom in the fake races
 SPEED = {"pursuit": 6.0, "gap": 5.0, "random": 1.0}  # m/s along the centre line
 FAKE_FPS = 10.0  # frames per second of the fake replay logs
+FAKE_TRACEBACK = 'Traceback (most recent call last):\n  File "agent.py", line 3\nZeroDivisionError'
 
 
 def _baseline_of(name: str) -> str:
@@ -59,6 +60,13 @@ def fake_replay(job: RaceJob, seconds: float = 6.0) -> object:
         xy = track.to_cartesian(np.column_stack([s, offsets]))
         poses = np.column_stack([xy, track.heading_at(s)])
         log.add_frame(t, poses, np.zeros(n), speeds, np.ones(n, dtype=bool))
+    # Events shaped like arena.race's _EventRecorder writes them: both cars of a contact
+    # record it; the car behind is at fault.
+    log.add_event(1.5, "off_track", "car_0")
+    if n > 1:
+        log.add_event(2.0, "collision", "car_1", other="car_0", at_fault=True, closing_speed=1.2)
+        log.add_event(2.0, "collision", "car_0", other="car_1", at_fault=False, closing_speed=1.2)
+    log.add_event(4.0, "lap", "car_0", lap=1, lap_time=4.0)
     return log
 
 
@@ -99,10 +107,16 @@ class FakeRunner:
                     "laps_completed": job.laps if finished else 0,
                     "lap_times": laps if finished else [],
                     "best_lap": min(laps) if finished else None,
-                    "total_time": math.fsum(laps) if finished else None,
+                    "total_time": math.fsum(laps) + 5.0 * (i == 1) if finished else None,
+                    "race_time": math.fsum(laps) if finished else None,
+                    "penalties": 5.0 * (i == 1) if job.ranked else 0.0,
                     "collisions": position - 1,
-                    "at_fault_collisions": 0,
+                    "at_fault_collisions": int(i == 1),
                     "off_track": 0 if finished else 3,
+                    # owner-only fields, as the worker reports them (submissions.jobs)
+                    "dnf_detail": None if finished else FAKE_TRACEBACK,
+                    "output": f"{job.entrants[i].name} says hello\n",
+                    "sandbox_mode": "bwrap",
                 }
             )
         result = {
@@ -117,11 +131,11 @@ class FakeRunner:
         }
         viser_path = out / f"{job.job_id}.viser"
         replay_path = out / f"{job.job_id}.replay.json.gz"
+        log = fake_replay(job)
+        log.save(replay_path)  # type: ignore[attr-defined]
         if real_viser:
             from submissions.viser_replay import write_viser
 
-            log = fake_replay(job)
-            log.save(replay_path)  # type: ignore[attr-defined]
             write_viser(log, viser_path)  # type: ignore[arg-type]
         else:
             viser_path.write_bytes(b"not a real viser file")

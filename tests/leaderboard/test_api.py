@@ -6,12 +6,13 @@ import io
 import json
 import os
 import zipfile
+from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 from fastapi.testclient import TestClient
-from sqlalchemy import select
+from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from leaderboard.errors import PayloadTooLarge
@@ -43,8 +44,8 @@ def test_upload_stores_version_and_queues_validation(
     assert race is not None and race.kind == "validation" and race.status == "queued"
     assert [e.source for e in race.entries] == [version.source, settings.validation_opponent]
     assert db.scalar(select(Job.priority).where(Job.race_id == race.id)) == 0
-    # Same name again: a second version of the same submission.
-    again = _upload(client, bundle_zip("zoom"), alice).json()
+    # Same name again (other bytes): a second version of the same submission.
+    again = _upload(client, bundle_zip("zoom", extra=b"second"), alice).json()
     assert (again["submission_id"], again["version"]) == (body["submission_id"], 2)
     detail = client.get(f"/api/submissions/{body['submission_id']}").json()
     assert [v["version"] for v in detail["versions"]] == [2, 1]
@@ -88,10 +89,12 @@ def test_only_the_owner_can_update_or_withdraw(
     assert r.status_code == 403 and "another user" in r.json()["detail"]
     assert client.delete(f"/api/submissions/{sub_id}", headers=bob.headers).status_code == 403
     # Bob uploading the same name makes his own submission, not a version of Alice's.
-    bobs = _upload(client, bundle_zip("mine"), bob).json()
+    bobs = _upload(client, bundle_zip("mine", extra=b"bob"), bob).json()
     assert bobs["submission_id"] != sub_id and bobs["version"] == 1
     # The owner can.
-    r = _upload(client, bundle_zip("mine"), alice, url=f"/api/submissions/{sub_id}/versions")
+    r = _upload(
+        client, bundle_zip("mine", extra=b"v2"), alice, url=f"/api/submissions/{sub_id}/versions"
+    )
     assert r.status_code == 201 and r.json()["version"] == 2
     r = client.delete(f"/api/submissions/{sub_id}", headers=alice.headers)
     assert r.status_code == 200 and r.json()["status"] == "withdrawn"
@@ -162,8 +165,10 @@ def test_leaderboard_is_ordered_by_ordinal_and_paginated(
 ) -> None:
     rows = client.get("/api/leaderboard").json()
     assert rows["total"] == 5
-    ordinals = [r["ordinal"] for r in rows["items"]]
-    assert ordinals == sorted(ordinals, reverse=True)
+    # Established submissions (>= 5 rated races) first, then provisional ones; by ordinal.
+    keys = [(r["provisional"], -r["ordinal"]) for r in rows["items"]]
+    assert keys == sorted(keys)
+    assert all(r["provisional"] == (r["races"] < 5) for r in rows["items"])
     assert [r["rank"] for r in rows["items"]] == [1, 2, 3, 4, 5]
     for r in rows["items"]:
         assert r["ordinal"] == pytest.approx(r["mu"] - 3 * r["sigma"])
@@ -249,4 +254,21 @@ def test_openapi_docs_and_health(client: TestClient) -> None:
     for p in ("/api/leaderboard", "/api/submissions", "/api/races/{race_id}", "/api/tracks"):
         assert p in paths
     health = client.get("/api/health").json()
-    assert health["status"] == "ok" and health["revision"] == "0001"
+    from tests.leaderboard.test_migrations import head_revision
+
+    assert health["status"] == "ok" and health["revision"] == head_revision("sqlite://")
+
+
+def test_tracks_count_finished_ranked_races_only(
+    client: TestClient, db: Session, seeded: Seeded
+) -> None:
+    rows = {t["name"]: t for t in client.get("/api/tracks").json()}
+    ranked = Counter(
+        db.scalars(select(Race.track).where(Race.kind == "ranked", Race.status == "finished"))
+    )
+    assert {name: t["races"] for name, t in rows.items()} == {n: ranked[n] for n in rows}
+    validations = db.scalar(select(func.count(Race.id)).where(Race.kind == "validation"))
+    assert validations and sum(t["races"] for t in rows.values()) == len(seeded.race_ids)
+    detail = client.get("/api/tracks/oval").json()
+    assert detail["races"] == ranked["oval"]
+    assert all(r["kind"] == "ranked" for r in detail["recent_races"])

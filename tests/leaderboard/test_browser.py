@@ -159,10 +159,15 @@ def _wait_for_player(frame: Any) -> tuple[Any, Any]:
 
 
 def test_race_page_embeds_a_working_player(browser: Any, base_url: str, site: Site) -> None:
+    """At 1280x720, the race page's 3D player at its default whole-track view shows every
+    car: the track-sized markers in the cars' colours (arena.viser_scene)."""
+    from arena.sim import car_colour
+
     job = site.runner.jobs[REPLAY_RACE - 1]
-    page = browser.new_page(viewport={"width": 1280, "height": 900})
+    page = browser.new_page(viewport={"width": 1280, "height": 720})
     errors: list[str] = []
-    page.on("pageerror", lambda err: errors.append(str(err)))
+    # The player's own CSP refuses an eval it tries (reported to H13); other errors count.
+    page.on("pageerror", lambda err: "'unsafe-eval'" in str(err) or errors.append(str(err)))
     try:
         page.goto(f"{base_url}/races/{REPLAY_RACE}", timeout=TIMEOUT_MS)
         assert page.locator("table#results tbody tr").count() == len(job.entrants)
@@ -178,6 +183,18 @@ def test_race_page_embeds_a_working_player(browser: Any, base_url: str, site: Si
     distinct, drawn = _nonblank(frame)
     # A blank canvas has one colour; the grid and the dark road make thousands.
     assert distinct > 50 and drawn > 0.01, (distinct, drawn)
+    (ARTIFACTS / "replay_default_view.png").write_bytes(frame)
+    # Each car is clearly visible at the default view: its marker arrow, >= 15 px long, covers
+    # >= ~60 px of its (lit, so paler) colour. Cars coloured like the red kerbs cannot be told
+    # apart from them by colour, so only the others are counted.
+    from arena.viser_scene import KERB_COLOURS
+
+    def far_from_kerbs(rgb: tuple[int, int, int]) -> bool:
+        return all(np.linalg.norm(np.subtract(rgb, k)) > 100 for k in KERB_COLOURS)
+
+    counted = [i for i in range(len(job.entrants)) if far_from_kerbs(car_colour(i))]
+    counts = {i: colour_pixels(frame, car_colour(i), tol=90) for i in counted}
+    assert counted and all(n >= 60 for n in counts.values()), counts
 
 
 def test_replay_player_shows_the_cars(browser: Any, base_url: str, site: Site) -> None:
@@ -211,3 +228,101 @@ def test_replay_player_shows_the_cars(browser: Any, base_url: str, site: Site) -
     # (the road is grey, the kerbs red and white, the ground white).
     counts = {i: colour_pixels(frame, car_colour(i)) for i in range(len(job.entrants))}
     assert all(n >= 50 for n in counts.values()), counts
+
+
+def test_race_map_shows_every_car_follows_one_and_seeks(
+    browser: Any, base_url: str, site: Site
+) -> None:
+    """At 1280x720 the race page's 2D map draws every car >= 15 px long, in its colour;
+    the standings and lap counter follow playback; an event link seeks; follow zooms in."""
+    from arena.sim import car_colour
+
+    job = site.runner.jobs[REPLAY_RACE - 1]
+    page = browser.new_page(viewport={"width": 1280, "height": 720})
+    errors: list[str] = []
+    # The viser player in the iframe reports a CSP refusal of eval (the viewer's policy, not
+    # this page's); every other error counts.
+    page.on("pageerror", lambda err: "'unsafe-eval'" in str(err) or errors.append(str(err)))
+    try:
+        page.goto(f"{base_url}/races/{REPLAY_RACE}", timeout=TIMEOUT_MS)
+        page.locator('#race-map[data-ready="1"]').wait_for(timeout=TIMEOUT_MS)
+        canvas = page.locator("#race-map canvas")
+        assert int(canvas.get_attribute("data-car-px") or 0) >= 15
+        box = canvas.bounding_box()
+        assert box is not None and box["y"] + box["height"] > 0
+        standings = page.locator("#race-map [data-standings] li")
+        assert standings.count() == len(job.entrants)
+        assert "lap 1/" in standings.first.inner_text()
+        # the timeline's collision link (2.0 s in the fake replay) seeks the map
+        page.locator('#events a[href="#t=2.00"]').first.click()
+        deadline = time.monotonic() + TIMEOUT_MS / 1000
+        while canvas.get_attribute("data-t") != "2.00":  # no eval: the page's CSP forbids it
+            assert time.monotonic() < deadline, canvas.get_attribute("data-t")
+            page.wait_for_timeout(100)
+        assert page.locator("#race-map [data-clock]").inner_text() == "2.0 s"
+        shot = canvas.screenshot()
+        ARTIFACTS.mkdir(parents=True, exist_ok=True)
+        (ARTIFACTS / "race_map.png").write_bytes(shot)
+        # every car's colour is on the map, each at least a 15 px arrow's worth of pixels
+        for i in range(len(job.entrants)):
+            assert colour_pixels(shot, car_colour(i)) >= 40, i
+        page.locator("#race-map [data-follow]").select_option("1")
+        followed = canvas.screenshot()
+        (ARTIFACTS / "race_map_follow.png").write_bytes(followed)
+        assert int(canvas.get_attribute("data-car-px") or 0) > 18  # zoomed in: true scale
+        assert colour_pixels(followed, car_colour(1)) >= colour_pixels(shot, car_colour(1))
+        _shot(page, "race_page_720p")
+    finally:
+        page.close()
+    assert not errors, errors
+
+
+def _sign_in(context: Any, base_url: str, token: str) -> Any:
+    page = context.new_page()
+    page.goto(base_url + "/signin", timeout=TIMEOUT_MS)
+    page.locator('#signin-form input[name="token"]').fill(token)
+    page.locator("#signin-form button").click()
+    page.wait_for_url("**/users/*", timeout=TIMEOUT_MS)
+    return page
+
+
+def test_only_the_owner_sees_logs(browser: Any, base_url: str, site: Site) -> None:
+    from tests.leaderboard.test_pages import _other_user_token
+
+    race = next(
+        int(j.job_id)
+        for j in site.runner.jobs
+        if any(e.name.startswith("random") for e in j.entrants)
+    )
+    url = f"{base_url}/races/{race}"
+    owner = browser.new_context(viewport={"width": 1280, "height": 900})
+    other = browser.new_context(viewport={"width": 1280, "height": 900})
+    anon = browser.new_context(viewport={"width": 1280, "height": 900})
+    try:
+        page = _sign_in(owner, base_url, site.token)
+        cookie = next(c for c in owner.cookies() if c["name"] == "slipstream_session")
+        assert cookie["httpOnly"] and cookie["sameSite"] == "Strict"
+        assert page.evaluate("document.cookie").find("slipstream_session") == -1
+        page.goto(url, timeout=TIMEOUT_MS)
+        logs = page.locator("#owner-logs")
+        assert "ZeroDivisionError" in logs.inner_text()
+        _shot(page, "race_owner_logs", full_page=True)
+        page.locator("#signout").click()
+        page.wait_for_url(base_url + "/", timeout=TIMEOUT_MS)
+        page.goto(url, timeout=TIMEOUT_MS)
+        assert page.locator("#owner-logs").count() == 0  # signed out: gone
+
+        page = _sign_in(other, base_url, _other_user_token(site, "eve_browser"))
+        page.goto(url, timeout=TIMEOUT_MS)
+        assert page.locator("#signed-in-as").inner_text() == "eve_browser"
+        assert page.locator("#owner-logs").count() == 0
+        assert "ZeroDivisionError" not in page.content()
+
+        page = anon.new_page()
+        page.goto(url, timeout=TIMEOUT_MS)
+        assert page.locator("#owner-logs").count() == 0
+        assert "ZeroDivisionError" not in page.content()
+        assert "DNF (time_limit)" in page.locator("table#results").inner_text()
+    finally:
+        for context in (owner, other, anon):
+            context.close()

@@ -6,10 +6,11 @@ from pathlib import Path
 
 from alembic.autogenerate import compare_metadata
 from alembic.runtime.migration import MigrationContext
+from alembic.script import ScriptDirectory
 from sqlalchemy import inspect
 
 from leaderboard.db import make_engine
-from leaderboard.migrations import current, downgrade, upgrade
+from leaderboard.migrations import alembic_config, current, downgrade, upgrade
 from leaderboard.models import Base
 
 TABLES = {
@@ -25,11 +26,25 @@ TABLES = {
 }
 
 
+def head_revision(url: str) -> str:
+    """The newest revision of the migration scripts."""
+    head = ScriptDirectory.from_config(alembic_config(url)).get_current_head()
+    assert head is not None
+    return head
+
+
+def test_revisions_form_one_chain_through_the_hardening_step(tmp_path: Path) -> None:
+    script = ScriptDirectory.from_config(alembic_config(f"sqlite:///{tmp_path / 'x.db'}"))
+    chain = [rev.revision for rev in script.walk_revisions()]  # head first
+    assert chain[-2:] == ["0002", "0001"]
+    assert len(script.get_heads()) == 1
+
+
 def _round_trip(url: str) -> None:
     engine = make_engine(url)
     try:
         upgrade(url, engine=engine)
-        assert current(url, engine=engine) == "0001"
+        assert current(url, engine=engine) == head_revision(url)
         assert set(inspect(engine).get_table_names()) >= TABLES
         with engine.connect() as conn:  # the schema the migrations build is the models' schema
             assert compare_metadata(MigrationContext.configure(conn), Base.metadata) == []

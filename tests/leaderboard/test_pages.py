@@ -154,7 +154,7 @@ def test_submission_page_has_versions_races_and_history(client: TestClient, site
     api = client.get(f"/api/submissions/{sid}").json()
     assert [r[0] for r in page.tables["versions"]] == ["v1"]
     assert page.tables["versions"][0][2] == "validated"
-    race_ids = [int(r[0].lstrip("#")) for r in page.tables["races"]]
+    race_ids = [int(r[0].lstrip("#")) for r in page.tables["my-races"]]
     api_races = client.get(f"/api/submissions/{sid}/races").json()["items"]
     assert race_ids == [r["id"] for r in api_races]
     finished = [r for r in api_races if r["status"] == "finished"]
@@ -166,6 +166,44 @@ def test_submission_page_has_versions_races_and_history(client: TestClient, site
     assert mu_line is not None and len(mu_line.group(1).split()) == api["races"] + 1
     assert len(api["rating_history"]) == api["races"] > 0
     assert f"/api/submissions/{sid}" in page.links
+
+
+def test_submission_page_journey(client: TestClient, site: Site) -> None:
+    """Every race with position, μ/σ change, penalties, best lap; bests; head to head."""
+    sid = _submission_id(site, "gap")
+    page = parse(client.get(f"/submissions/{sid}").text)
+    races = page.tables["my-races"]
+    entries = {
+        int(r[0].lstrip("#")): r for r in races
+    }  # race, track, kind, position, status, best, penalties, total, dμ, dσ
+    for race_id, row in entries.items():
+        detail = client.get(f"/api/races/{race_id}").json()
+        mine = next(e for e in detail["entries"] if e["submission_id"] == sid)
+        if detail["status"] != "finished":
+            assert row[3] == "—"
+            continue
+        assert row[3] == f"{mine['position']}/{len(detail['entries'])}"
+        if detail["kind"] == "ranked":
+            assert float(row[8]) == pytest.approx(mine["mu_after"] - mine["mu_before"], abs=0.006)
+            assert float(row[9]) == pytest.approx(
+                mine["sigma_after"] - mine["sigma_before"], abs=0.006
+            )
+        else:
+            assert row[8] == "—"
+    ranked_rows = [r for r in races if r[2] == "ranked"]
+    assert ranked_rows
+    bests = page.tables["track-bests"]
+    for track, best, _race in bests:
+        laps = [float(r[5].split()[0]) for r in ranked_rows if r[1] == track and r[5] != "—"]
+        assert float(best.split()[0]) == pytest.approx(min(laps), abs=1e-3)
+    h2h = {r[0]: r for r in page.tables["head-to-head"]}
+    # the fake runner's skill order: pursuit > gap > random, and random never finishes
+    if "pursuit" in h2h:
+        assert int(h2h["pursuit"][3]) == 0 and int(h2h["pursuit"][4]) == int(h2h["pursuit"][2])
+    if "random" in h2h:
+        assert int(h2h["random"][3]) == int(h2h["random"][2]) and int(h2h["random"][4]) == 0
+    versions = page.tables["versions"]
+    assert versions[0][5].startswith("#") and "passed" in versions[0][6]
 
 
 def test_submission_text_is_escaped(client: TestClient, site: Site) -> None:
@@ -222,7 +260,7 @@ def test_race_page_results_chart_and_replay(client: TestClient, site: Site) -> N
     assert [r[0] for r in rows] == ["1", "2", "3"]
     assert rows[0][2].startswith("pursuit") and rows[1][2].startswith("gap")
     assert rows[2][3] == "DNF (time_limit)" and rows[2][5] == "—"
-    assert "→" in rows[0][9]  # μ before → after
+    assert "→" in rows[0][11]  # μ before → after
     assert page.iframes == [viewer_url(f"/replays/{race_id}.viser")]
     svg = re.search(r"<svg.*?</svg>", response.text, re.S)
     assert svg is not None
@@ -231,6 +269,49 @@ def test_race_page_results_chart_and_replay(client: TestClient, site: Site) -> N
     finisher_cars = {int(r[1].removeprefix("car_")) for r in rows[:2]}
     for car in finisher_cars:
         assert charts.car_hex(car) in svg.group(0)
+
+
+def test_race_page_shows_race_time_penalties_and_events(client: TestClient, site: Site) -> None:
+    """The fake runner's car_1 caused a collision (+5 s) in every ranked race (site_data)."""
+    job = next(j for j in site.runner.jobs if len(j.entrants) == 3)
+    response = client.get(f"/races/{job.job_id}")
+    page = parse(response.text)
+    by_car = {r[1]: r for r in page.tables["results"]}
+    race_time, penalty, total = by_car["car_1"][6:9]
+    assert penalty == "+5 s"
+    assert float(total.split()[0]) == pytest.approx(float(race_time.split()[0]) + 5.0, abs=1e-3)
+    assert by_car["car_0"][7] == "—"
+    # what the penalty was for, linked to that moment of the replay
+    assert "collision with car_0 (at fault) at 2.0 s" in response.text
+    assert "#t=2.00" in page.links
+    # the timeline: the contact once, with who was at fault; laps with times; off-tracks
+    events = re.findall(r'<li class="ev-(\w+)"><a href="#t=([0-9.]+)">', response.text)
+    assert [e[0] for e in events] == ["off_track", "collision", "lap"]
+    name_0, name_1 = job.entrants[0].name, job.entrants[1].name
+    assert f"{name_1} hit {name_0} ({name_1} at fault)" in response.text
+    assert f"{name_0} lap 1 in 4.000 s" in response.text
+    # the 2D race map is wired to the raw log; no inline script anywhere
+    assert f'data-replay="/replays/{job.job_id}.replay.json.gz"' in response.text
+    assert '<script src="/static/race_map.js"' in response.text
+    assert not re.search(r"<script(?![^>]*\bsrc=)", response.text)
+    assert client.get("/static/race_map.js").status_code == 200
+
+
+def test_validation_race_has_no_penalties(client: TestClient) -> None:
+    response = client.get("/races/1")
+    assert "No time penalties in validation races." in response.text
+    assert 'id="penalties"' not in response.text
+
+
+def test_owner_only_fields_stay_out_of_public_pages(client: TestClient, site: Site) -> None:
+    from tests.leaderboard.site_data import FAKE_TRACEBACK
+
+    for race_id in (1, 4, 5):
+        html = client.get(f"/races/{race_id}").text
+        api = client.get(f"/api/races/{race_id}").text
+        for text in (html, api):
+            assert "ZeroDivisionError" not in text and "says hello" not in text
+    assert "ZeroDivisionError" in FAKE_TRACEBACK
 
 
 def test_race_without_replay_file_shows_no_player(client: TestClient, site: Site) -> None:
@@ -330,3 +411,170 @@ def test_web_process_imports_no_simulator(site: Site) -> None:
     )
     assert out.returncode == 0, out.stderr[-2000:]
     assert "heavy: []" in out.stdout
+
+
+# ---- signing in and owner-only logs ---------------------------------------------------------
+
+
+def _other_user_token(site: Site, name: str) -> str:
+    from leaderboard import auth
+    from leaderboard.db import make_engine, make_sessionmaker
+
+    engine = make_engine(site.settings.db_url)
+    try:
+        with make_sessionmaker(engine)() as session:
+            existing = session.query(auth.User).filter_by(name=name).one_or_none()
+            user = existing or auth.create_user(session, name=name)[0]
+            _, token = auth.create_token(session, user=user, label="test")
+            session.commit()
+            return token
+    finally:
+        engine.dispose()
+
+
+def _sign_in(client: TestClient, token: str) -> None:
+    form = client.get("/signin")
+    csrf = re.search(r'name="csrf" value="([^"]+)"', form.text)
+    assert csrf is not None
+    response = client.post(
+        "/signin", data={"token": token, "csrf": csrf.group(1)}, follow_redirects=False
+    )
+    assert response.status_code == 303, response.text[:300]
+
+
+def _dnf_race(site: Site) -> int:
+    """A race where the (house-owned) random baseline retired: its fake traceback is stored."""
+    return next(
+        int(j.job_id)
+        for j in site.runner.jobs
+        if any(e.name.startswith("random") for e in j.entrants)
+    )
+
+
+def test_owner_sees_logs_others_and_visitors_do_not(site: Site) -> None:
+    race = _dnf_race(site)
+    with TestClient(create_app(site.settings)) as owner:
+        _sign_in(owner, site.token)
+        cookie = owner.cookies.get("slipstream_session")
+        assert cookie
+        html = owner.get(f"/races/{race}").text
+        assert 'id="owner-logs"' in html and "ZeroDivisionError" in html
+        assert "says hello" in html and "sandbox: bwrap" in html
+    with TestClient(create_app(site.settings)) as eve:
+        _sign_in(eve, _other_user_token(site, "eve"))
+        html = eve.get(f"/races/{race}").text
+        assert 'id="signed-in-as"' in html  # signed in, but owns no car here
+        assert "owner-logs" not in html and "ZeroDivisionError" not in html
+    with TestClient(create_app(site.settings)) as visitor:
+        html = visitor.get(f"/races/{race}").text
+        assert "owner-logs" not in html and "ZeroDivisionError" not in html
+        assert "DNF (time_limit)" in html  # the public status stays
+
+
+def test_logs_api_gives_only_the_callers_cars(client: TestClient, site: Site) -> None:
+    race = _dnf_race(site)
+    mine = client.get(
+        f"/api/races/{race}/logs", headers={"Authorization": f"Bearer {site.token}"}
+    ).json()
+    assert {log["name"].split(":")[0] for log in mine} >= {"random"}
+    random_log = next(log for log in mine if log["name"].startswith("random"))
+    assert "ZeroDivisionError" in random_log["dnf_detail"]
+    assert random_log["sandbox_mode"] == "bwrap"
+    eve = _other_user_token(site, "eve")
+    theirs = client.get(f"/api/races/{race}/logs", headers={"Authorization": f"Bearer {eve}"})
+    assert theirs.status_code == 200 and theirs.json() == []
+    assert client.get(f"/api/races/{race}/logs").status_code == 401
+
+
+def test_session_cookie_flags_csrf_and_sign_out(site: Site) -> None:
+    with TestClient(create_app(site.settings), base_url="https://testserver") as c:
+        form = c.get("/signin")
+        csrf = re.search(r'name="csrf" value="([^"]+)"', form.text)
+        assert csrf is not None
+        # a forged sign-in (no matching CSRF cookie value) is refused and opens no session
+        bad = c.post("/signin", data={"token": site.token, "csrf": "forged"})
+        assert bad.status_code == 403 and "slipstream_session" not in c.cookies
+        wrong = c.post("/signin", data={"token": "not-a-token", "csrf": csrf.group(1)})
+        assert wrong.status_code == 401 and "Unknown or revoked token" in wrong.text
+        ok = c.post(
+            "/signin", data={"token": site.token, "csrf": csrf.group(1)}, follow_redirects=False
+        )
+        flags = ok.headers["set-cookie"].lower()
+        assert "slipstream_session=" in flags
+        for flag in ("httponly", "samesite=strict", "secure"):
+            assert flag in flags
+        page = c.get("/races/1").text
+        session_csrf = re.search(
+            r'action="/signout"><input type="hidden" name="csrf" value="([^"]+)"', page
+        )
+        assert session_csrf is not None
+        # sign-out without the session's CSRF token is refused; with it, the session ends
+        assert c.post("/signout", data={"csrf": "forged"}).status_code == 403
+        assert 'id="signed-in-as"' in c.get("/races/1").text
+        out = c.post("/signout", data={"csrf": session_csrf.group(1)}, follow_redirects=False)
+        assert out.status_code == 303
+        assert 'id="signin-link"' in c.get("/races/1").text
+
+
+def test_revoking_the_token_ends_the_session(site: Site) -> None:
+    token = _other_user_token(site, "mallory")
+    with TestClient(create_app(site.settings)) as c:
+        _sign_in(c, token)
+        assert 'id="signed-in-as"' in c.get("/").text
+        tokens = c.get("/api/tokens", headers={"Authorization": f"Bearer {token}"}).json()
+        for row in tokens:
+            c.delete(f"/api/tokens/{row['id']}", headers={"Authorization": f"Bearer {token}"})
+        assert 'id="signin-link"' in c.get("/").text
+
+
+def test_races_filters_and_leaderboard_search(client: TestClient) -> None:
+    rows = _page(client, "/races?kind=validation").tables["races"]
+    assert rows and {r[2] for r in rows} == {"validation"}
+    sub = client.get("/api/leaderboard").json()["items"][0]
+    rows = _page(client, f"/races?submission={sub['submission_id']}&kind=ranked").tables["races"]
+    api = client.get(f"/api/races?submission={sub['submission_id']}&kind=ranked").json()
+    assert [int(r[0].lstrip("#")) for r in rows] == [r["id"] for r in api["items"]]
+    assert rows and {r[2] for r in rows} == {"ranked"}
+    oval = _page(client, "/races?track=oval").tables.get("races", [])
+    assert all(r[1] == "oval" for r in oval)
+    found = _page(client, "/?q=PURS").tables["leaderboard"]
+    assert [r[1].split()[0] for r in found] == ["pursuit"]
+    assert "No submission or author matches" in client.get("/?q=nobody-here").text
+
+
+def test_chart_axis_label_clears_the_top_tick() -> None:
+    """Issue 13: the y axis label overlapped the top tick label (11 px text, baselines)."""
+    svg = charts.rating_history_svg([(25.0, 8.3), (27.0, 7.0), (26.0, 6.5)])
+    label_y = float(re.search(r'class="axis-label" x="[0-9.]+" y="([0-9.]+)"', svg).group(1))  # type: ignore[union-attr]
+    tick_ys = [
+        float(y)
+        for y in re.findall(r'class="tick" x="[0-9.]+" y="([0-9.]+)" text-anchor="end"', svg)
+    ]
+    assert tick_ys and label_y <= min(tick_ys) - 11
+
+
+def test_penalty_rules_match_the_race() -> None:
+    """The web process lists penalties with its own copy of arena.race's constants."""
+    from arena.race import COLLISION_PENALTY, OFF_TRACK_PENALTY
+    from leaderboard.results import PENALTY_SECONDS
+
+    assert PENALTY_SECONDS == {"off_track": OFF_TRACK_PENALTY, "collision": COLLISION_PENALTY}
+
+
+def test_store_result_keeps_owner_fields_private_and_caps_them() -> None:
+    """Shapes as submissions.jobs reports them: dnf_detail per car, logs per agent."""
+    from leaderboard.results import MAX_DETAIL, split_private
+
+    result = {
+        "cars": [
+            {"agent": "car_0", "status": "dnf", "dnf_reason": "error", "dnf_detail": "x" * 9000},
+            {"agent": "car_1", "status": "finished", "dnf_reason": None, "dnf_detail": None},
+        ]
+    }
+    logs = {"car_0": {"output": "hello\n", "sandbox_mode": "bwrap"}, "nature_0": {"output": "?"}}
+    public, private = split_private(result, logs)
+    assert all("dnf_detail" not in car for car in public["cars"])
+    assert result["cars"][0]["dnf_detail"]  # the caller's document is left alone
+    assert set(private) == {0}
+    assert len(private[0]["dnf_detail"]) <= MAX_DETAIL + 8
+    assert private[0]["output"] == "hello\n" and private[0]["sandbox_mode"] == "bwrap"

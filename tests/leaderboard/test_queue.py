@@ -195,3 +195,38 @@ def test_top_up_fills_the_queue_to_the_target(db: Session, settings: Settings, t
     matchmaking.top_up(db, settings, target, random.Random(0))
     db.commit()
     assert queue.pending(db) == target
+
+
+def test_validation_is_fair_queued_per_user(db: Session, settings: Settings) -> None:
+    """Issue 13: one user's five uploads in a row put five validation races ahead of every
+    ranked race. Now a user's first waiting validation goes first, the rest queue with the
+    ranked races in arrival order, and another user's upload still goes ahead of them."""
+    from leaderboard import auth, uploads
+
+    ranked = _queue_ranked(db, settings, 2)
+    burst, _ = auth.create_user(db, name="burst")
+    mine = [
+        uploads.add_baseline(db, settings, user=burst, baseline="random", name=f"b{i}")
+        for i in range(4)
+    ]
+    other, _ = auth.create_user(db, name="other")
+    theirs = uploads.add_baseline(db, settings, user=other, baseline="gap", name="o")
+    db.commit()
+
+    def race_of(version_id: int) -> int:
+        return int(
+            db.scalar(
+                select(Race.id)
+                .join(Race.entries)
+                .where(Race.kind == "validation")
+                .where(Race.entries.any(version_id=version_id))
+            )
+            or 0
+        )
+
+    claimed = []
+    while (lease := queue.claim(db, owner="w", lease_s=30)) is not None:
+        claimed.append(lease.race_id)
+    expected = [race_of(mine[0].id), race_of(theirs.id), *(r.id for r in ranked)]
+    expected += [race_of(v.id) for v in mine[1:]]
+    assert claimed == expected

@@ -102,3 +102,28 @@ def test_validation_race_accepts_or_rejects_the_version(db: Session, settings: S
     assert "dnf (error)" in (db.get(type(bad), bad.id).error or "")  # type: ignore[union-attr]
     # Validation races are unrated.
     assert db.scalar(select(func.count(RatingHistory.id))) == 0
+
+
+def test_provisional_submissions_rank_after_established_ones(
+    db: Session, settings: Settings
+) -> None:
+    """Issue 13: a submission that never raced (ordinal 0) ranked above established ones with
+    negative ordinals. Below k rated races it is provisional and listed after them."""
+    from leaderboard import queries
+
+    factories.seed(db, settings, n_submissions=3, n_races=0)
+    veteran, newcomer, middle = db.scalars(select(Submission).order_by(Submission.id)).all()
+    for sub, races, ordinal_ in ((veteran, 12, -2.0), (newcomer, 0, 0.0), (middle, 4, 5.0)):
+        sub.races, sub.ordinal = races, ordinal_
+    db.commit()
+    rows = queries.leaderboard(db, provisional_races=5).items
+    assert [(r.submission_id, r.provisional) for r in rows] == [
+        (veteran.id, False),
+        (middle.id, True),
+        (newcomer.id, True),
+    ]
+    assert [queries.submission_rank(db, s) for s in (veteran, middle, newcomer)] == [1, 2, 3]
+    # k = 0: nobody is provisional, the plain ordinal order.
+    rows = queries.leaderboard(db, provisional_races=0).items
+    assert [r.submission_id for r in rows] == [middle.id, newcomer.id, veteran.id]
+    assert not any(r.provisional for r in rows)

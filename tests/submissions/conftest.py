@@ -21,7 +21,7 @@ from arena.race import RaceResult, run_race
 from arena.version import ENV_VERSION
 from submissions.bundle import Bundle, Manifest, make_bundle, open_bundle
 from submissions.remote import SandboxedPolicy
-from submissions.sandbox import SandboxLimits, bwrap_works, landlock_abi
+from submissions.sandbox import WEAK_ENV, SandboxLimits, bwrap_works, landlock_abi
 
 # A python-format policy that drives like the pursuit baseline (imported inside the sandbox)
 # and calls ``self.attack(obs)`` on its third step; hostile policies override ``attack``.
@@ -140,6 +140,8 @@ def mode(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str
     if wanted == "seccomp" and landlock_abi() == 0:
         pytest.skip("no Landlock in this kernel: the fallback cannot confine files")
     monkeypatch.setenv("SANDBOX", wanted)
+    if wanted == "seccomp":  # the operator's --allow-weak-sandbox (fail closed without it)
+        monkeypatch.setenv(WEAK_ENV, "1")
     return wanted
 
 

@@ -1,16 +1,28 @@
 """Executors: the local process pool and Ray run the same job function; a job whose worker
-process dies is run again, and every job's result is yielded exactly once."""
+process dies is run again, and every job's result is yielded exactly once; whatever way a
+job ends, nothing of it (process, cgroup, folder, mount) remains."""
 
 from __future__ import annotations
 
 import os
+import random
+import signal
+import subprocess
+import sys
+import tempfile
 import time
 from pathlib import Path
 
 import pytest
 
+from submissions import sandbox
+from submissions.bundle import make_bundle, open_bundle
+from submissions.errors import SubmissionError
 from submissions.executors import LocalExecutor, RayExecutor, make_executor
 from submissions.jobs import Entrant, JobResult, RaceJob
+from submissions.remote import SandboxedPolicy
+
+from .conftest import manifest_for, python_source, sandbox_processes
 
 
 def make_jobs(out: Path, n: int) -> list[RaceJob]:
@@ -103,7 +115,8 @@ def test_job_timeout_kills_the_worker(tmp_path: Path) -> None:
     start = time.monotonic()
     results = list(executor.run(make_jobs(tmp_path, 2)))
     assert time.monotonic() - start < 30
-    assert all(r.error == "timed out after 1.0 s" for r in results)
+    assert all(str(r.error).startswith("timed out after 1 s") for r in results)
+    assert all(r.attempts == 1 for r in results)  # failed by the job, never retried
 
 
 def test_stopping_early_kills_running_jobs(tmp_path: Path) -> None:
@@ -127,5 +140,117 @@ def test_ray_runs_the_same_job_function(tmp_path: Path) -> None:
         (real,) = RayExecutor().run(make_jobs(tmp_path / "real", 1))
         assert real.ok and Path(real.replay_path).exists()
         assert [c["name"] for c in real.result["cars"]] == ["p", "g"]
+        # The per-job wall-clock limit holds on Ray too: killed on its node, not retried.
+        slow = RayExecutor(max_retries=2, fn=sleep_long, job_timeout_s=1.0)
+        (stuck,) = slow.run(make_jobs(tmp_path / "slow", 1))
+        assert str(stuck.error).startswith("timed out after 1 s") and stuck.attempts == 1
     finally:
         ray.shutdown()
+
+
+# ---- nothing left behind --------------------------------------------------------------
+
+
+def hold_a_sandbox(job: RaceJob) -> JobResult:
+    """Open the job's bundle, start its sandbox, say its id, then hang (to be killed)."""
+    bundle = open_bundle(Path(job.entrants[0].source), Path(tempfile.mkdtemp()) / "b")
+    policy = SandboxedPolicy(bundle)
+    policy.reset(0)  # loaded: the worker, its cgroups, folder and (fallback) tmpfs exist
+    Path(job.out_dir).mkdir(parents=True, exist_ok=True)
+    (Path(job.out_dir) / f"{job.job_id}.sid").write_text(str(policy.sandbox_id))
+    if job.job_id.startswith("die"):
+        os.kill(os.getpid(), signal.SIGKILL)  # the job process dies, its sandbox alive
+    time.sleep(600)
+    return fake_result(job)
+
+
+def sandbox_traces(sandbox_id: str) -> list[str]:
+    """What of a sandbox still exists on the host: processes, cgroups, folders, mounts."""
+    found = [f"pid {pid}" for pid in sandbox_processes(sandbox_id)]
+    found += [str(d) for d in sandbox.CgroupCaps.existing(sandbox_id).dirs]
+    found += [str(d) for d in Path(tempfile.gettempdir()).glob(f"slipstream-*{sandbox_id}*")]
+    found += [m for m in Path("/proc/self/mounts").read_text().splitlines() if sandbox_id in m]
+    return found
+
+
+def scratch_folders(owner: int) -> list[Path]:
+    return list(Path(tempfile.gettempdir()).glob(f"{sandbox.JOB_PREFIX}{owner}-*"))
+
+
+@pytest.fixture
+def holding_bundle(tmp_path: Path) -> Path:
+    source = python_source("class Policy(Driver):\n    pass\n").encode()
+    return make_bundle(tmp_path / "holder.zip", manifest_for("holder"), {"agent.py": source})
+
+
+def holding_jobs(out: Path, bundle: Path, n: int, prefix: str = "hold") -> list[RaceJob]:
+    entrants = (Entrant("holder", str(bundle)), Entrant("p", "pursuit"))
+    return [RaceJob(f"{prefix}{i}", entrants, "oval", str(out), laps=1) for i in range(n)]
+
+
+@pytest.mark.slow
+def test_jobs_killed_at_random_points_leave_nothing(
+    mode: str, tmp_path: Path, holding_bundle: Path
+) -> None:
+    # Timeouts drawn at random kill jobs before or while their sandboxes start; then jobs
+    # whose process dies (SIGKILL) with a live, loaded sandbox.
+    rng = random.Random(12)
+    rounds = [("hold", rng.uniform(0.5, 5.0)), ("hold", rng.uniform(0.5, 5.0)), ("die", 60.0)]
+    seen: list[str] = []
+    for k, (prefix, timeout) in enumerate(rounds):
+        out = tmp_path / f"round{k}"
+        executor = LocalExecutor(workers=2, max_retries=0, fn=hold_a_sandbox, job_timeout_s=timeout)
+        results = list(executor.run(holding_jobs(out, holding_bundle, 2, prefix)))
+        expected = "timed out" if prefix == "hold" else "the job's worker process died"
+        assert all(str(r.error).startswith(expected) for r in results), results
+        seen += [p.read_text() for p in out.glob("*.sid")]
+        for sid in seen:
+            assert sandbox_traces(sid) == []
+        assert scratch_folders(os.getpid()) == []
+    assert len(seen) >= 2  # the dying jobs' sandboxes were up when their jobs died
+
+
+@pytest.mark.slow
+def test_a_sigkilled_runner_leaves_nothing_once_the_next_one_starts(
+    mode: str, tmp_path: Path, holding_bundle: Path
+) -> None:
+    # The runner (an executor in its own process) is SIGKILLed while its job holds a live
+    # sandbox: the job and the sandbox die with it (parent-death signals), and nothing of
+    # them (folders, cgroups, mounts) remains.
+    script = (
+        "import sys; from pathlib import Path\n"
+        "from submissions.executors import LocalExecutor\n"
+        "from tests.submissions.test_executors import hold_a_sandbox, holding_jobs\n"
+        "jobs = holding_jobs(Path(sys.argv[1]), Path(sys.argv[2]), 1)\n"
+        "list(LocalExecutor(workers=1, fn=hold_a_sandbox).run(jobs))\n"
+    )
+    runner = subprocess.Popen(
+        [sys.executable, "-c", script, str(tmp_path), str(holding_bundle)], cwd=Path.cwd()
+    )
+    sid_file = tmp_path / "hold0.sid"
+    deadline = time.monotonic() + 90
+    while not sid_file.exists() and time.monotonic() < deadline:
+        time.sleep(0.2)
+    sid = sid_file.read_text()
+    assert sandbox_processes(sid)
+    runner.send_signal(signal.SIGKILL)
+    runner.wait()
+    deadline = time.monotonic() + 10
+    while sandbox_processes(sid) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert sandbox_processes(sid) == []  # nothing of the policy outlived its runner
+    # The job reaps its own scratch folder on its parent-death signal (SIGTERM); whatever
+    # a harder death left, the next runner reaps first.
+    sandbox.reap_stale()
+    assert sandbox_traces(sid) == []
+    assert scratch_folders(runner.pid) == []
+
+
+def test_the_executor_never_uses_a_fork_server() -> None:
+    # Python 3.11's fork server listens on a Unix socket and unpickles what it is sent: a
+    # policy that found it in /proc/net/unix escaped (issue 12). No listener, no start method.
+    assert LocalExecutor().context.get_start_method() == "spawn"
+    with pytest.raises(SubmissionError, match="spawn or fork"):
+        LocalExecutor(start_method="forkserver")
+    with pytest.raises(SubmissionError, match="positive"):
+        LocalExecutor(job_timeout_s=0)

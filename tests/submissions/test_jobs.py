@@ -49,6 +49,7 @@ def test_job_round_trips_through_json(tmp_path: Path) -> None:
         ranked=False,
         limits=SandboxLimits(step_deadline_s=0.5),
         record_viser=False,
+        wall_clock_s=90.0,
     )
     again = RaceJob.from_dict(json.loads(json.dumps(job.to_dict())))
     assert again == job
@@ -62,6 +63,7 @@ def test_job_round_trips_through_json(tmp_path: Path) -> None:
         ({"entrants": (Entrant("a", "gap"),)}, "2 to 8 entrants"),
         ({"entrants": tuple(Entrant(f"c{i}", "gap") for i in range(9))}, "2 to 8 entrants"),
         ({"laps": 0}, "laps must be at least 1"),
+        ({"wall_clock_s": 0.0}, "wall_clock_s must be positive"),
     ],
 )
 def test_bad_jobs(tmp_path: Path, kwargs: dict[str, object], match: str) -> None:
@@ -115,7 +117,7 @@ def test_sandboxed_checkpoint_bundle_races(tmp_path: Path) -> None:
         record_viser=False,
     )
     res = run_race_job(job)
-    assert res.sandbox in ("bwrap", "seccomp")
+    assert res.sandbox in ("bwrap", "seccomp-weak")
     cars = {c["name"]: c for c in res.result["cars"]}
     assert cars["ppo"]["status"] == cars["ppo2"]["status"] == "finished"
     assert cars["pursuit"]["status"] == "finished"
@@ -137,6 +139,76 @@ def test_failing_bundle_retires_only_its_car(tmp_path: Path) -> None:
     cars = {c["name"]: c for c in run_race_job(job).result["cars"]}
     assert cars["crash"]["status"] == "dnf" and cars["crash"]["dnf_reason"] == "error"
     assert cars["gap"]["status"] == "finished"
+
+
+COUNTING = """
+import numpy as np
+
+
+class Policy:
+    resets = 0  # per process: a reused sandbox keeps counting
+
+    def reset(self, seed):
+        Policy.resets += 1
+        print(f"reset number {Policy.resets}", flush=True)
+
+    def act(self, obs):
+        return np.array([0.0, 0.2], np.float32)
+"""
+
+
+@pytest.mark.slow
+def test_a_batch_reuses_each_bundles_sandbox_and_kills_it_at_the_end(tmp_path: Path) -> None:
+    """Two jobs with the same bundle: the second races in the first one's sandbox (its
+    policy process counts its second reset); a job's logs hold its own race's output only;
+    no sandbox folder of this process remains afterwards."""
+    import os
+    import tempfile
+
+    from submissions.jobs import run_race_jobs
+
+    bundle = python_bundle(tmp_path / "count.zip", COUNTING, "counter")
+    jobs = [
+        RaceJob(
+            f"batch{i}",
+            (Entrant("counter", str(bundle)), Entrant("pursuit", "pursuit")),
+            "oval",
+            str(tmp_path / "out"),
+            laps=1,
+            seed=i,
+            record_viser=False,
+        )
+        for i in range(2)
+    ]
+    first, second = run_race_jobs(jobs)
+    assert first.ok and second.ok
+    assert "reset number 1" in first.logs["car_0"]["output"]
+    assert "reset number 2" in second.logs["car_0"]["output"]
+    assert "reset number 1" not in second.logs["car_0"]["output"]
+    assert second.logs["car_0"]["sandbox_mode"] in ("bwrap", "seccomp-weak")
+    left = list(Path(tempfile.gettempdir()).glob(f"slipstream-sbx-{os.getpid()}-*"))
+    assert left == []
+
+
+def test_a_batch_reports_a_bad_bundle_as_a_failed_job_and_runs_the_rest(tmp_path: Path) -> None:
+    from submissions.jobs import run_race_jobs
+
+    bad = tmp_path / "bad.zip"
+    bad.write_bytes(b"not a zip")
+    jobs = [
+        RaceJob("bad", (Entrant("x", str(bad)), Entrant("g", "gap")), "oval", str(tmp_path)),
+        RaceJob(
+            "good",
+            (Entrant("a", "pursuit"), Entrant("b", "gap")),
+            "oval",
+            str(tmp_path),
+            laps=1,
+            record_viser=False,
+        ),
+    ]
+    bad_result, good_result = run_race_jobs(jobs)
+    assert not bad_result.ok and "not a valid zip" in (bad_result.error or "")
+    assert good_result.ok and good_result.sandbox == "none" and good_result.logs == {}
 
 
 # ---- slipstream evaluate --------------------------------------------------------------------

@@ -15,9 +15,11 @@ from submissions.protocol import (
     HEADER,
     MAX_FRAME,
     MAX_TEXT,
+    SEQ_MODULO,
     FrameDecoder,
     Kind,
     ProtocolError,
+    cap_text,
     encode,
     encode_json,
     encode_text,
@@ -75,7 +77,7 @@ def test_encode_refuses_what_is_not_a_plain_array(value: np.ndarray) -> None:
 def _header(
     magic: bytes = b"SL", kind: int = 5, code: int = 1, ndim: int = 1, nbytes: int = 8
 ) -> bytes:
-    return HEADER.pack(magic, kind, code, ndim, nbytes)
+    return HEADER.pack(magic, kind, code, ndim, 0, nbytes)
 
 
 @pytest.mark.parametrize(
@@ -136,3 +138,46 @@ def test_pipelined_requests_are_refused() -> None:
     finally:
         os.close(r)
         os.close(w)
+
+
+def test_the_frame_cap_is_inclusive() -> None:
+    """A payload of exactly ``max_frame`` bytes passes; one byte more is refused unread."""
+    exact = encode(Kind.ACT, np.zeros(16, np.uint8))
+    (frame,) = FrameDecoder(max_frame=16).feed(exact)
+    assert frame.array.size == 16
+    with pytest.raises(ProtocolError, match="exceeds"):
+        FrameDecoder(max_frame=16).feed(encode(Kind.ACT, np.zeros(17, np.uint8))[:16])
+    with pytest.raises(ProtocolError, match="exceeds"):
+        encode(Kind.ACT, np.zeros(MAX_FRAME + 1, np.uint8))
+    assert len(encode(Kind.ACT, np.zeros(MAX_FRAME, np.uint8))) == HEADER.size + 8 + MAX_FRAME
+
+
+@pytest.mark.parametrize("seq", [0, 1, 7, 65_535, 65_536, 65_537])
+def test_sequence_numbers_travel_in_the_header_and_wrap(seq: int) -> None:
+    (frame,) = FrameDecoder().feed(encode(Kind.ACTION, np.zeros(2, np.float32), seq))
+    assert frame.seq == seq % SEQ_MODULO
+    (frame,) = FrameDecoder().feed(encode_text(Kind.ERROR, "boom", seq))
+    assert frame.seq == seq % SEQ_MODULO and frame.text == "boom"
+
+
+@pytest.mark.parametrize(
+    "shape",
+    [(0, 1 << 63), (0,) + (1 << 24,) * 7, (1 << 62, 0)],
+    ids=["zero-by-2^63", "zero-by-huge-axes", "2^62-by-zero"],
+)
+def test_a_zero_size_frame_with_absurd_axes_is_a_protocol_error(shape: tuple[int, ...]) -> None:
+    """The shape of the issue's finding: a header whose shape numpy cannot build (it raised
+    ValueError, which killed the host's reader thread) must be a ProtocolError."""
+    data = HEADER.pack(b"SL", 5, 1, len(shape), 3, 0) + b"".join(
+        struct.pack("<Q", n) for n in shape
+    )
+    with pytest.raises(ProtocolError, match="shape"):
+        FrameDecoder().feed(data)
+
+
+def test_cap_text_keeps_short_text_and_cuts_long_text_to_the_byte() -> None:
+    assert cap_text("short") == "short"
+    long = "é" * 10_000  # two bytes each: the cut must not split a character
+    capped = cap_text(long, 4096)
+    assert len(capped.encode()) <= 4096 and capped.startswith("é" * 100)
+    assert "more bytes cut" in capped

@@ -5,8 +5,10 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import time
 from dataclasses import replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -31,13 +33,25 @@ from submissions.sandbox import CGROUP_ROOT, SandboxLimits, sandbox_mode
 from .conftest import FAST, MakeBundle, sandbox_processes
 
 PROBE = """
-import json, os, resource, socket, sys
+import ctypes, json, os, resource, socket, sys
 
 def _try(fn):
     try:
         return fn()
     except OSError as err:
         return "OSError:" + (err.strerror or type(err).__name__)
+
+def _libc_call(name, *args):
+    libc = ctypes.CDLL(None, use_errno=True)
+    ret = getattr(libc, name)(*args)
+    return "ok" if ret >= 0 else "OSError:" + os.strerror(ctypes.get_errno())
+
+def _fork():
+    pid = os.fork()
+    if pid == 0:
+        os._exit(0)
+    os.waitpid(pid, 0)
+    return "ok"
 
 def _write(path, mb):
     with open(path, "wb") as fh:
@@ -56,6 +70,15 @@ class Policy:
             "seccomp": status.get("Seccomp", "").strip(),
             "no_new_privs": status.get("NoNewPrivs", "").strip(),
             "cap_eff": status.get("CapEff", "").strip(),
+            "cap_bnd": status.get("CapBnd", "").strip(),
+            "groups": os.getgroups(),
+            "proc_net": _try(lambda: open("/proc/self/net/unix").read(100) or "ok"),
+            "socketpair": _try(lambda: socket.socketpair() and "ok"),
+            "shmget": _libc_call("shmget", 0, 4096, 0o1666),
+            "msgget": _libc_call("msgget", 0, 0o1666),
+            "mq_open": _libc_call("mq_open", b"/slipstream-probe", 0o100 | 2, 0o666, None),
+            "sethostname": _try(lambda: socket.sethostname("pwned") or "ok"),
+            "fork": _try(_fork),
             "nofile": resource.getrlimit(resource.RLIMIT_NOFILE)[0],
             "as_mb": resource.getrlimit(resource.RLIMIT_AS)[0] >> 20,
             "fsize_mb": resource.getrlimit(resource.RLIMIT_FSIZE)[0] >> 20,
@@ -88,7 +111,14 @@ def test_the_probe_sees_a_confined_world(mode: str, make_python_bundle: MakeBund
     try:
         assert policy.mode == mode
         assert facts["seccomp"] == "2" and facts["no_new_privs"] == "1"
-        assert facts["socket_inet"].startswith("OSError") and facts["socket_unix"] == "ok"
+        # no socket of any family (pipes need none), no SysV IPC, no mqueue, no hostname
+        for key in ("socket_inet", "socket_unix", "socketpair", "shmget", "msgget", "mq_open"):
+            assert facts[key].startswith("OSError"), key
+        assert facts["sethostname"].startswith("OSError")
+        # /proc/self/net/unix: none in the fallback, its own empty namespace's in bwrap
+        assert facts["proc_net"].startswith("OSError") or facts["proc_net"].count("\n") == 1
+        assert facts["uid"] == 65534 and facts["groups"] in ([], [65534])
+        assert facts["cap_eff"] == "0000000000000000"
         assert (facts["nofile"], facts["as_mb"], facts["fsize_mb"], facts["cpu"]) == (
             64,
             1536,
@@ -103,11 +133,14 @@ def test_the_probe_sees_a_confined_world(mode: str, make_python_bundle: MakeBund
         }  # fmt: skip
         assert facts["spec"] == make_env_spec()
         if mode == "bwrap":
-            assert facts["uid"] == 65534
-            assert facts["cap_eff"] == "0000000000000000"
             assert len(facts["pids"]) <= 3  # bwrap's init, the worker (and nothing of the host)
+            assert facts["fork"] == "ok"  # the pid namespace contains its children
         else:
             assert str(facts["pids"]).startswith("OSError")  # Landlock hides /proc
+            assert facts["proc_net"].startswith("OSError")
+            assert facts["groups"] == []
+            assert facts["cap_bnd"] == "0000000000000000"  # the bounding set is empty too
+            assert facts["fork"].startswith("OSError")  # one process: nothing outlives it
         assert policy.sandbox_id is not None
         assert sandbox_processes(policy.sandbox_id)
     finally:
@@ -116,13 +149,21 @@ def test_the_probe_sees_a_confined_world(mode: str, make_python_bundle: MakeBund
     assert not list((CGROUP_ROOT / "pids" / "slipstream").glob(f"{policy.sandbox_id}*"))
 
 
-def test_the_private_tmpfs_is_size_capped(make_python_bundle: MakeBundle) -> None:
-    if sandbox_mode() != "bwrap":
-        pytest.skip("the size-capped tmpfs is bwrap's")
-    body = PROBE.replace('"tmp_small"', '"tmp_fill"').replace(
-        '_write(os.path.join(os.environ["TMPDIR"], "a"), 1)', '_write("/tmp/fill", 8)'
+def test_the_private_tmpfs_is_size_capped(mode: str, make_python_bundle: MakeBundle) -> None:
+    # Many small files, each under RLIMIT_FSIZE: only the folder's quota stops them.
+    body = (
+        PROBE.replace('"tmp_small"', '"tmp_fill"')
+        .replace(
+            '_write(os.path.join(os.environ["TMPDIR"], "a"), 1)',
+            '[_keep(os.path.join(os.environ["TMPDIR"], f"f{i}"), 1) for i in range(8)]',
+        )
+        .replace(
+            "def _write(",
+            "def _keep(path, mb):\n    open(path, 'wb').write(b'x' * (mb << 20))\n\ndef _write(",
+        )
     )
-    policy = SandboxedPolicy(make_python_bundle(body, driver=False), replace(FAST, tmpfs_mb=4))
+    limits = replace(FAST, tmpfs_mb=4)
+    policy = SandboxedPolicy(make_python_bundle(body, driver=False), limits)
     try:
         policy.reset(0)
         facts = json.loads(
@@ -130,7 +171,7 @@ def test_the_private_tmpfs_is_size_capped(make_python_bundle: MakeBundle) -> Non
         )
     finally:
         policy.close()
-    assert facts["tmp_fill"].startswith("OSError")  # ENOSPC (or EFBIG): 8 MiB in a 4 MiB tmpfs
+    assert str(facts["tmp_fill"]).startswith("OSError")  # ENOSPC: 8 x 1 MiB in a 4 MiB tmpfs
 
 
 def test_limits_are_checked() -> None:
@@ -144,16 +185,66 @@ def test_limits_are_checked() -> None:
 
 def test_sandbox_mode_honours_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("SANDBOX", "seccomp")
+    monkeypatch.setenv(sandbox.WEAK_ENV, "1")
     assert sandbox_mode() == "seccomp"
     monkeypatch.setenv("SANDBOX", "chroot")
     with pytest.raises(SandboxError, match="SANDBOX"):
         sandbox_mode()
 
 
+@pytest.mark.parametrize(
+    ("forced", "bwrap_ok", "allowed", "expected"),
+    [
+        ("", True, "", "bwrap"),
+        ("", True, "1", "bwrap"),  # allowing the fallback never prefers it
+        ("", False, "1", "seccomp"),
+        ("", False, "", SandboxError),  # fail closed: no namespaces, no permission
+        ("", False, "yes", SandboxError),  # only "1" allows it
+        ("seccomp", True, "", SandboxError),  # SANDBOX=seccomp still needs the flag
+        ("seccomp", True, "1", "seccomp"),
+        ("bwrap", False, "1", SandboxError),
+        ("bwrap", True, "", "bwrap"),
+    ],
+)
+def test_the_sandbox_fails_closed(
+    monkeypatch: pytest.MonkeyPatch,
+    forced: str,
+    bwrap_ok: bool,
+    allowed: str,
+    expected: str | type[Exception],
+) -> None:
+    monkeypatch.setenv("SANDBOX", forced)
+    monkeypatch.setenv(sandbox.WEAK_ENV, allowed)
+    monkeypatch.setattr(sandbox, "bwrap_works", lambda: bwrap_ok)
+    if isinstance(expected, str):
+        assert sandbox_mode() == expected
+    else:
+        with pytest.raises(expected, match=r"allow-weak-sandbox|cannot create namespaces"):
+            sandbox_mode()
+
+
+def test_results_say_when_the_fallback_ran() -> None:
+    assert sandbox.mode_label("seccomp") == "seccomp-weak"
+    assert sandbox.mode_label("bwrap") == "bwrap"
+    assert len(sandbox.mode_label("seccomp")) <= 16  # the races.sandbox column
+
+
+def test_allowing_the_fallback_is_logged_and_inherited(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    monkeypatch.delenv(sandbox.WEAK_ENV, raising=False)
+    assert not sandbox.weak_sandbox_allowed()
+    with caplog.at_level(logging.WARNING, logger="submissions.sandbox"):
+        sandbox.allow_weak_sandbox()
+    assert sandbox.weak_sandbox_allowed() and os.environ[sandbox.WEAK_ENV] == "1"
+    assert "--allow-weak-sandbox" in caplog.text
+
+
 def test_without_namespaces_the_fallback_is_loud(
     monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
 ) -> None:
     monkeypatch.delenv("SANDBOX", raising=False)
+    monkeypatch.setenv(sandbox.WEAK_ENV, "1")
     monkeypatch.setattr(sandbox, "bwrap_works", lambda: False)
     sandbox._warn_fallback.cache_clear()
     with caplog.at_level(logging.WARNING, logger="submissions.sandbox"):
@@ -162,6 +253,22 @@ def test_without_namespaces_the_fallback_is_loud(
     monkeypatch.setenv("SANDBOX", "bwrap")
     with pytest.raises(SandboxError, match="cannot create namespaces"):
         sandbox_mode()
+
+
+def test_the_fallback_identity_is_never_root(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(sandbox.os, "geteuid", lambda: 0)
+    monkeypatch.delenv(sandbox.UID_ENV, raising=False)
+    ident = sandbox.fallback_identity()
+    assert ident is not None and (ident.uid, ident.gid) == (65534, 65534)
+    monkeypatch.setenv(sandbox.UID_ENV, "2000:3000")
+    ident = sandbox.fallback_identity()
+    assert ident is not None and (ident.uid, ident.gid) == (2000, 3000)
+    for bad in ("0", "1000:0", "nobody"):
+        monkeypatch.setenv(sandbox.UID_ENV, bad)
+        with pytest.raises(SandboxError, match=sandbox.UID_ENV):
+            sandbox.fallback_identity()
+    monkeypatch.setattr(sandbox.os, "geteuid", lambda: 1000)
+    assert sandbox.fallback_identity() is None  # not root: nothing to drop to
 
 
 SLEEPER = """
@@ -350,3 +457,28 @@ def test_bundle_root_is_read_only_inside(make_python_bundle: MakeBundle) -> None
     result, _ = run_race([SandboxedPolicy(bundle, FAST)], seed=0, record=False)
     assert (result.cars[0].status, result.cars[0].dnf_reason) == ("dnf", "error")
     assert (bundle.root / "agent.py").read_bytes() == before
+
+
+def test_a_sandbox_is_reaped_from_its_folder_alone(
+    mode: str, make_python_bundle: MakeBundle
+) -> None:
+    # What the next runner does for a sandbox whose host was SIGKILLed: only the folder
+    # <tmp>/slipstream-sbx-<pid>-<id> is known. First the recorded process group alone.
+    policy = SandboxedPolicy(make_python_bundle(PROBE, name="probe", driver=False), FAST)
+    try:
+        policy.reset(0)
+        proc = policy._proc
+        assert proc is not None and proc.folder is not None and policy.sandbox_id is not None
+        folder, sid = proc.folder, policy.sandbox_id
+        assert folder.is_dir() and sandbox_processes(sid)
+        sandbox._kill_group(folder)
+        deadline = time.monotonic() + 10
+        while sandbox_processes(sid) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert sandbox_processes(sid) == []
+        sandbox.reap(folder)
+        assert not folder.exists()
+        assert sandbox.CgroupCaps.existing(sid).dirs == []
+        assert sid not in Path("/proc/self/mounts").read_text()
+    finally:
+        policy.close()

@@ -114,8 +114,17 @@ def test_scene_holds_track_and_named_cars(tmp_path: Path) -> None:
     kinds = Counter(m["type"] for _, m in doc["messages"])
     assert kinds["MeshMessage"] >= 1  # the road surface
     assert kinds["LineSegmentsMessage"] == 3  # two kerbs and the start line
-    labels = {m["props"]["text"] for _, m in doc["messages"] if m["type"] == "LabelMessage"}
-    assert labels == {"alpha", "beta"}
+    labels = [m for _, m in doc["messages"] if m["type"] == "LabelMessage"]
+    cars = {m["name"]: m["props"]["text"] for m in labels if m["name"].startswith("/cars/")}
+    assert cars == {"/cars/car_0/label": "P1 alpha", "/cars/car_1/label": "P2 beta"}
+    assert any(m["name"] == "/standings" for m in labels)  # the board
+    # every car has a marker in its colour, larger than the car on a whole-track view
+    markers = [
+        m
+        for _, m in doc["messages"]
+        if m["type"] == "MeshMessage" and str(m.get("name", "")).endswith("/marker")
+    ]
+    assert len(markers) == 2
 
 
 def test_real_race_replay(tmp_path: Path) -> None:
@@ -139,3 +148,114 @@ def test_errors(tmp_path: Path) -> None:
     (tmp_path / "junk.viser").write_bytes(b"\x10" + b"\0" * 7 + b"garbage" * 4)
     with pytest.raises(SubmissionError, match=r"not a \.viser recording"):
         read_viser(tmp_path / "junk.viser")
+
+
+# ---- watching: the default view, labels, standings ----------------------------------------
+
+
+def overtaking_replay() -> ReplayLog:
+    """Two cars, one lap of the oval: beta starts ahead, alpha passes it at t = 1 s and wins.
+
+    Events shaped as arena.race's recorder writes them (``lap`` with ``lap``, then ``finish``).
+    """
+    track = load_track("oval")
+    replay = ReplayLog(
+        track=track,
+        dt=0.1,
+        cars=[
+            {"agent": "car_0", "name": "alpha", "colour": [230, 57, 70]},
+            {"agent": "car_1", "name": "beta", "colour": [29, 53, 87]},
+        ],
+        env_version="0.1",
+        laps=1,
+    )
+    for k in range(60):
+        t = 0.1 * k
+        s = np.array([-1.0 + 20.0 * t, 4.0 + 15.0 * t])  # m; alpha passes beta at t = 1
+        xy = track.to_cartesian(np.stack([track.wrap_s(s), np.zeros(2)], axis=1))
+        poses = np.column_stack([xy, track.heading_at(track.wrap_s(s))])
+        replay.add_frame(t, poses, np.zeros(2), np.array([20.0, 15.0]), np.ones(2, dtype=bool))
+    finish = (track.length + 1.0) / 20.0
+    replay.add_event(finish, "lap", "car_0", lap=1, lap_time=finish)
+    replay.add_event(finish, "finish", "car_0")
+    return replay
+
+
+def updates_of(doc: dict[str, Any], node: str) -> list[tuple[float, str]]:
+    """A label's text over time: its creation, then every text update."""
+    out = []
+    for t, m in doc["messages"]:
+        if m.get("name") != node:
+            continue
+        if m["type"] == "LabelMessage":
+            out.append((t, m["props"]["text"]))
+        elif m["type"] == "SceneNodeUpdateMessage" and "text" in m["updates"]:
+            out.append((t, m["updates"]["text"]))
+    return out
+
+
+def test_labels_and_board_follow_the_standings(tmp_path: Path) -> None:
+    replay = overtaking_replay()
+    doc = read_viser(write_viser(replay, tmp_path / "r.viser", fps=10))
+    alpha = updates_of(doc, "/cars/car_0/label")
+    assert state_at(alpha, 0.5) == "P2 alpha"  # beta leads off the grid
+    assert state_at(alpha, 1.5) == "P1 alpha"  # after the pass
+    assert state_at(updates_of(doc, "/cars/car_1/label"), 1.5) == "P2 beta"
+    board = updates_of(doc, "/standings")
+    assert state_at(board, 0.5) == "Lap 1/1\nP1 beta  lap 1/1\nP2 alpha  lap 1/1"
+    finish = (replay.track.length + 1.0) / 20.0
+    assert state_at(board, finish + 0.2) == "Finished\nP1 alpha  finished\nP2 beta  lap 1/1"
+    # the labels change only when the standings do: a handful of updates, not one per frame
+    assert len(board) < 6
+
+
+def test_lap_count_is_inferred_without_a_recorded_one(tmp_path: Path) -> None:
+    replay = overtaking_replay()
+    replay.laps = 0  # a log from before the field existed: the finisher's laps tell it
+    saved = ReplayLog.load(replay.save(tmp_path / "r.replay.json.gz"))
+    assert saved.laps == 0
+    doc = read_viser(write_viser(saved, tmp_path / "r.viser", fps=10))
+    assert state_at(updates_of(doc, "/standings"), 0.5).startswith("Lap 1/1\n")
+
+
+@pytest.mark.parametrize("name", ["oval", "bean", "spielberg", "monza", "hairpins"])
+def test_default_view_frames_the_track_and_every_car_is_large(name: str) -> None:
+    """At 1280x720 the whole track is in the frame and each marker is >= 15 px long."""
+    from arena.sim import CarParams
+    from arena.viser_scene import fit_view, marker_length, project
+
+    track = load_track(name)
+    view = fit_view(track)
+    border = np.concatenate([track.left_border, track.right_border])
+    px = project(view, np.column_stack([border, np.zeros(len(border))]))
+    assert px[:, 0].min() >= 0 and px[:, 0].max() <= 1280
+    assert px[:, 1].min() >= 0 and px[:, 1].max() <= 720
+    # the track fills the frame: at least 70 % of the width or of the height
+    assert max(np.ptp(px[:, 0]) / 1280, np.ptp(px[:, 1]) / 720) > 0.7
+    marker = marker_length(track, CarParams())
+    for s in np.linspace(0, track.length, 24, endpoint=False):  # anywhere on the lap
+        xy = track.to_cartesian(np.array([[s, 0.0]]))[0]
+        yaw = float(track.heading_at(s))
+        ends = np.array([[np.cos(yaw), np.sin(yaw)], [-np.cos(yaw), -np.sin(yaw)]])
+        tips = np.column_stack([xy + 0.5 * marker * ends, np.zeros(2)])
+        length = float(np.linalg.norm(np.diff(project(view, tips), axis=0)))
+        assert length >= 15.0, (name, s, length)
+
+
+@pytest.mark.parametrize("name", ["oval", "spielberg", "monza"])
+def test_start_grid_labels_do_not_overlap(name: str) -> None:
+    """Eight cars on the start grid (tracks' own start_grid): their labels' screen boxes
+    (bottom-left anchored, ~7.5 px per character, 16 px tall at 1280x720) do not intersect."""
+    from arena.viser_scene import fit_view, pole_heights, project
+
+    track = load_track(name)
+    grid = track.start_grid(8)
+    heights = pole_heights(track, grid)
+    anchors = project(fit_view(track), np.column_stack([grid[:, :2], heights]))
+    width = 7.5 * len("P8 baseline-pursuit")
+    boxes = [(x, y - 16.0, x + width, y) for x, y in anchors]
+    for i in range(8):
+        for j in range(i + 1, 8):
+            a, b = boxes[i], boxes[j]
+            overlap = a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]
+            assert not overlap, (name, i, j, a, b)

@@ -88,3 +88,16 @@ def bone_points(gap: float, spacing: float = 0.2) -> FloatArray:
     end.append((flare * np.pi / 3, -1 / flare))
     pieces = [(20.0, 0.0), *end, (20.0, 0.0), *end]
     return turtle(pieces, start=(-10.0, -gap / 2), spacing=spacing)
+
+
+def hairpin_points(radius: float = 0.6, spacing: float = 0.2) -> FloatArray:
+    """Anticlockwise circuit (about 40 m) with one ``radius`` m hairpin at s ≈ 12 m.
+
+    A 12 m straight, the 180° hairpin, an S-bend (two 60° arcs of 2 m radius) that opens
+    the return straight 3.2 m away, the straight back and a 1.6 m-radius 180° turn home.
+    """
+    s_bend = [(2 * np.pi / 3, -0.5), (2 * np.pi / 3, 0.5)]
+    back = 12.0 - 2 * 2.0 * np.sin(np.pi / 3)  # the S-bend moves 2 · 2 sin 60° m back in x
+    pieces = [(12.0, 0.0), (np.pi * radius, 1 / radius), *s_bend, (back, 0.0)]
+    pieces.append((np.pi * 1.6, 1 / 1.6))
+    return turtle(pieces, spacing=spacing)

@@ -158,3 +158,32 @@ def test_real_script(tmp_path: Path) -> None:
     assert bad.returncode == EXIT_USER_ERROR
     assert_user_error(bad.returncode, bad.stderr, "unknown track")
     assert bad.stdout == ""
+
+
+def test_import_narrows_scales_and_keeps_a_raceline(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # F1TENTH-shaped files (f1tenth_racetracks: *_centerline.csv with a constant 1.1 m
+    # half-width, *_raceline.csv semicolon-separated); see tests/tracks/test_real_files.py.
+    from tests.tracks.builders import hairpin_points
+    from tests.tracks.test_real_files import write_f1tenth_centreline, write_raceline
+
+    pts = hairpin_points(0.6)
+    csv = write_f1tenth_centreline(tmp_path / "H_centerline.csv", pts * 2.0)
+    race = write_raceline(tmp_path / "H_raceline.csv", pts * 2.0, speed=6.0)
+    target = tmp_path / "h.json"
+    argv = ["tracks", "import", str(csv), "--scale", "0.5", "--raceline", str(race)]
+    code, out, _ = run_main([*argv, "--width", "0.9", "--out", str(target), "--json"], capsys)
+    assert code == 0
+    summary = json.loads(out)
+    assert summary["raceline"] is True
+    assert any("narrowed the left half-width" in n for n in summary["notes"])
+    back = load_track(target)
+    assert back.raceline is not None
+    assert abs(back.raceline.points - pts).max() < 1e-5  # scaled back to the hairpin's size
+    assert back.width_right.max() == pytest.approx(0.9)  # --width is in the scaled metres
+    code, out, _ = run_main([*argv, "--max-width", "0.4", "--out", str(target), "--force"], capsys)
+    assert code == 0 and "narrowed" not in out  # no side wider than the hairpin allows
+    assert load_track(target).width.max() <= 0.8 + 1e-9
+    code, _, err = run_main([*argv, "--scale", "-1", "--out", str(target), "--force"], capsys)
+    assert_user_error(code, err, "--scale must be a positive number")

@@ -66,6 +66,15 @@ def ring_npy(path: Path, *, clockwise: bool, inner: float = 0.8, outer: float = 
     return path
 
 
+def distance_to_polyline(points: np.ndarray, ring: np.ndarray) -> np.ndarray:
+    """(M,) m from each point to the closed polyline ``ring`` (K, 2)."""
+    a, b = ring, np.roll(ring, -1, axis=0)
+    ab = b - a
+    ap = points[:, None, :] - a[None, :, :]
+    t = np.clip(np.einsum("mkj,kj->mk", ap, ab) / np.einsum("kj,kj->k", ab, ab), 0.0, 1.0)
+    return np.linalg.norm(ap - t[..., None] * ab, axis=-1).min(axis=1)
+
+
 @pytest.mark.parametrize("clockwise", [False, True])
 def test_deepracer_inner_and_outer_become_left_and_right(tmp_path: Path, clockwise: bool) -> None:
     track = read_deepracer(ring_npy(tmp_path / "ring.npy", clockwise=clockwise))
@@ -76,18 +85,20 @@ def test_deepracer_inner_and_outer_become_left_and_right(tmp_path: Path, clockwi
         if clockwise
         else (track.left_border, track.right_border)
     )
-    np.testing.assert_allclose(np.linalg.norm(inner_side, axis=1), 9.2, atol=1e-3)
-    np.testing.assert_allclose(np.linalg.norm(outer_side, axis=1), 11.6, atol=1e-3)
+    # The road's edges are the file's own border polylines (60 chords of the 9.2 m and
+    # 11.6 m circles), not offsets of the smoothed centre line.
+    th = np.linspace(0.0, 2 * np.pi, 60, endpoint=False)
+    unit = np.column_stack([np.cos(th), np.sin(th)])
+    assert distance_to_polyline(inner_side, 9.2 * unit).max() < 5e-3
+    assert distance_to_polyline(outer_side, 11.6 * unit).max() < 5e-3
     inner_w, outer_w = (
         (track.width_right, track.width_left)
         if clockwise
-        else (
-            track.width_left,
-            track.width_right,
-        )
+        else (track.width_left, track.width_right)
     )
-    np.testing.assert_allclose(inner_w, 0.8, atol=1e-3)
-    np.testing.assert_allclose(outer_w, 1.6, atol=1e-3)
+    np.testing.assert_allclose(inner_w, 0.8, atol=0.015)
+    np.testing.assert_allclose(outer_w, 1.6, atol=0.02)
+    assert track.waypoints is not None and len(track.waypoints) == 61  # the file's own points
 
 
 def ring_dict(**extra: Any) -> dict[str, Any]:

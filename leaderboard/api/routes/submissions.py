@@ -10,7 +10,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from leaderboard import queries, uploads
-from leaderboard.api.deps import CurrentUser, PageDep, SessionDep, SettingsDep
+from leaderboard.api.deps import CurrentUser, IdPath, PageDep, SessionDep, SettingsDep
 from leaderboard.errors import NotFound
 from leaderboard.models import Race, RaceEntry, Submission, SubmissionVersion
 
@@ -67,7 +67,7 @@ def upload_version(
     session: SessionDep,
     settings: SettingsDep,
     user: CurrentUser,
-    submission_id: int,
+    submission_id: IdPath,
     file: BundleFile,
 ) -> Uploaded:
     """Add a version to one of your submissions (403 if it is someone else's)."""
@@ -81,7 +81,7 @@ def upload_version(
 
 @router.delete("/submissions/{submission_id}", response_model=queries.SubmissionDetail)
 def withdraw_submission(
-    session: SessionDep, user: CurrentUser, submission_id: int
+    session: SessionDep, user: CurrentUser, submission_id: IdPath
 ) -> queries.SubmissionDetail:
     """Withdraw one of your submissions from the leaderboard (403 if someone else's)."""
     uploads.withdraw(session, user=user, submission_id=submission_id)
@@ -102,7 +102,7 @@ def list_submissions(
 @router.get("/submissions/{submission_id}", response_model=queries.SubmissionDetail)
 def get_submission(
     session: SessionDep,
-    submission_id: int,
+    submission_id: IdPath,
     races: Annotated[int, Query(ge=0, le=200, description="recent races included")] = 20,
 ) -> queries.SubmissionDetail:
     """A submission: rating, rank, versions, recent races, rating history."""
@@ -111,7 +111,7 @@ def get_submission(
 
 @router.get("/submissions/{submission_id}/races", response_model=queries.Page[queries.RaceSummary])
 def submission_races(
-    session: SessionDep, submission_id: int, pages: PageDep
+    session: SessionDep, submission_id: IdPath, pages: PageDep
 ) -> queries.Page[queries.RaceSummary]:
     """The races a submission took part in, newest first."""
     if session.get(Submission, submission_id) is None:

@@ -1,4 +1,4 @@
-"""Users and API tokens: ``/api/users``, ``/api/users/me``, ``/api/tokens``."""
+"""Users: ``/api/users`` (admin), ``/api/users/me``, ``/api/users/{name}``."""
 
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ class UserCreate(BaseModel):
     is_admin: bool = False
 
 
-class UserPublic(BaseModel):
+class UserPublic(queries.UtcModel):
     """A user as others see them."""
 
     name: str
@@ -31,18 +31,6 @@ class UserWithToken(BaseModel):
     """A new user and their first API token (shown only once)."""
 
     user: UserPublic
-    token: str
-
-
-class TokenCreate(BaseModel):
-    """A new API token's label."""
-
-    label: str = Field(default="", max_length=64)
-
-
-class TokenIssued(BaseModel):
-    """A new API token (shown only once; only its hash is stored)."""
-
     token: str
 
 
@@ -78,18 +66,3 @@ def get_user(session: SessionDep, name: str, pages: PageDep) -> UserPage:
     user = auth.get_user(session, name)
     subs = queries.submissions(session, page=pages.page, per_page=pages.per_page, author=name)
     return UserPage(user=UserPublic(name=user.name, created_at=user.created_at), submissions=subs)
-
-
-@router.post("/tokens", response_model=TokenIssued, status_code=status.HTTP_201_CREATED)
-def create_token(session: SessionDep, user: CurrentUser, body: TokenCreate) -> TokenIssued:
-    """Issue another API token for the current user."""
-    token = auth.issue_token(session, user=user, label=body.label)
-    session.commit()
-    return TokenIssued(token=token)
-
-
-@router.delete("/tokens/{token_id}", status_code=status.HTTP_204_NO_CONTENT)
-def revoke_token(session: SessionDep, user: CurrentUser, token_id: int) -> None:
-    """Revoke one of the current user's tokens."""
-    auth.revoke_token(session, user=user, token_id=token_id)
-    session.commit()

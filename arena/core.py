@@ -1,0 +1,510 @@
+"""The episode rules, written once over arrays with a leading batch axis (Brax's PipelineEnv).
+
+Both simulators — pybullet (:class:`arena.sim.Simulator`, one race, ``B = 1``) and the
+batched one (:class:`arena.batch.sim.BatchSim`, ``B`` races) — only move the cars and sense
+them (projection onto the centre line, contacts, lidar). Everything that makes a race a race
+is here, as pure functions of ``(B, N)`` arrays through the :mod:`arena.batch.xp` namespace
+(numpy or torch), with ``where`` instead of per-car branches:
+
+* :func:`episode_start` / :func:`episode_step`: progress along the lap, lap gates (exactly
+  :class:`tracks.LapCounter`'s), lap times (a grid start counts lap 1 from the start signal,
+  a mid-lap start from its first crossing of the line), off-track (all four wheels off the
+  road), car–car contact and blame, positions and overtakes, the racing reward terms, and
+  termination (finished, stuck, flipped, off the road too long) and truncation
+  (``max_cycles``), with the DNF reason as a code into :data:`DNF_REASONS`;
+* :func:`start_spec`: the ``reset(options=...)`` grammar (``grid_order``, ``start_offset``,
+  ``direction``), one parser for both PettingZoo envs;
+* :func:`global_state`: PettingZoo's ``state()`` features.
+
+:class:`arena.episode.RaceEpisodeEnv` (the PettingZoo side: agents, spaces, infos, model
+uncertainty, ``park_finished``) drives either simulator through these functions.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from arena.batch.xp import NUMPY, Array, NumpyOps
+from arena.rewards import RACING_TERMS, RewardWeights, collision_blame, race_positions, racing_terms
+from arena.sim import CarParams, SimError
+from tracks import Track
+from tracks.geometry import DEFAULT_CHECKPOINTS
+
+STUCK_DISTANCE = 0.5  # m of progress a car must make within ``stuck_time`` seconds
+FLIP_UPRIGHT = 0.3  # z of the car's up axis below which it counts as flipped
+CUT_JUMP = 3.0  # m: a larger jump in progress in one control step is a cut, not driving
+STATE_FEATURES = 10  # per car in the global state: x, y, cos, sin, vx, vy, yaw rate, s, race, on
+# DNF reasons by code (0: none). "time_limit" is the step limit on both backends.
+DNF_REASONS: tuple[str | None, ...] = (
+    None,
+    "off_track",
+    "stuck",
+    "flipped",
+    "time_limit",
+    "crashed",
+)
+OFF_TRACK, STUCK, FLIPPED, TIME_LIMIT, CRASHED = 1, 2, 3, 4, 5
+
+
+def default_max_cycles(race_distance: float, control_hz: int) -> int:
+    """The default step limit: the time to cover ``race_distance`` m at 2.5 m/s, plus 5 s."""
+    return math.ceil((5.0 + race_distance / 2.5) * control_hz)
+
+
+@dataclass(frozen=True)
+class EpisodeRules:
+    """The static rules of one track's races (built once per track and direction).
+
+    Attributes:
+        n_cars, laps: cars per race, race distance in laps.
+        control_hz: control steps per second; ``dt = 1 / control_hz`` s.
+        max_cycles: steps before everyone left is truncated.
+        off_track_limit: s off the road before a car retires.
+        window: control steps of the stuck test (``stuck_time · control_hz``).
+        length: lap length, m.
+        gate_s: (G,) m, the ordered lap gates (gate 0 is the start line).
+        max_jump: m, the largest one-step move that may cross a gate.
+        wheel_x, wheel_y: (4,) m, wheel offsets in the car frame (off-track test).
+        weights: racing reward weights.
+        end_on_crash: a car's episode ends when it touches a wall or another car
+            (DeepRacer's ``is_crashed``; DNF ``"crashed"``).
+    """
+
+    n_cars: int
+    laps: int
+    control_hz: int
+    max_cycles: int
+    off_track_limit: float
+    window: int
+    length: float
+    gate_s: Array
+    max_jump: float
+    wheel_x: Array
+    wheel_y: Array
+    weights: RewardWeights
+    end_on_crash: bool = False
+
+    @property
+    def dt(self) -> float:
+        """Control step, s."""
+        return 1.0 / self.control_hz
+
+    @property
+    def race_distance(self) -> float:
+        """m from the start line to the finish."""
+        return self.laps * self.length
+
+    @classmethod
+    def build(
+        cls,
+        track: Track,
+        ops: NumpyOps,
+        *,
+        n_cars: int,
+        laps: int,
+        control_hz: int,
+        params: CarParams,
+        max_cycles: int | None = None,
+        off_track_limit: float = 3.0,
+        stuck_time: float = 4.0,
+        weights: RewardWeights | None = None,
+        end_on_crash: bool = False,
+    ) -> EpisodeRules:
+        """The rules for ``track`` with arrays on ``ops``' device."""
+        length = track.length
+        n_gates = DEFAULT_CHECKPOINTS
+        # tracks.LapCounter's rule: a move may cross at most one gate.
+        max_jump = CUT_JUMP if 0.5 * length / n_gates > CUT_JUMP else 0.45 * length / n_gates
+        return cls(
+            n_cars=n_cars,
+            laps=laps,
+            control_hz=control_hz,
+            max_cycles=max_cycles or default_max_cycles(laps * length, control_hz),
+            off_track_limit=off_track_limit,
+            window=max(1, round(stuck_time * control_hz)),
+            length=length,
+            gate_s=ops.asarray(track.checkpoint_s(n_gates)),
+            max_jump=max_jump,
+            wheel_x=ops.asarray(np.array([0.5, 0.5, -0.5, -0.5]) * params.wheelbase),
+            wheel_y=ops.asarray(np.array([0.5, -0.5, 0.5, -0.5]) * params.track_width),
+            weights=weights or RewardWeights(),
+            end_on_crash=end_on_crash,
+        )
+
+    def delta_s(self, ops: NumpyOps, s_to: Array, s_from: Array) -> Array:
+        """Signed shortest progress from ``s_from`` to ``s_to``, m in ``[-L/2, L/2)``."""
+        half = 0.5 * self.length
+        return ops.mod(s_to - s_from + half, self.length) - half
+
+
+@dataclass
+class EpisodeState:
+    """Per race and car, everything the rules carry from step to step; arrays (B, N).
+
+    ``contact`` is (B, N, N); ``history`` (B, W, N) the race progress of the last W steps
+    (row ``steps % W`` is the newest); ``steps`` and ``grid_start`` are (B,).
+    ``laps`` is -1 until a car first crosses the start line; ``race_progress`` is metres
+    from the start line (negative behind it).
+    """
+
+    s: Array
+    next_gate: Array
+    laps: Array
+    race_progress: Array
+    positions: Array
+    active: Array
+    finished: Array
+    finish_time: Array
+    off_time: Array
+    line_time: Array
+    last_lap: Array
+    contact: Array
+    history: Array
+    steps: Array
+    grid_start: Array
+
+
+@dataclass
+class Sensed:
+    """What the simulator reports after one control step (arrays (B, N) unless noted).
+
+    Attributes:
+        s, d, heading: projection onto the centre line: m along, m left, rad.
+        yaw: rad; ``left``, ``right``: road half-widths at the cars, m.
+        wall: touched a wall during the step; touching: (B, N, N) touched each other.
+        upright: z of the up axis (None: the simulator cannot flip a car).
+        prev_poses: (B, N, 3) [x, y, yaw] and prev_velocity (B, N, 2) [vx, vy] world m/s
+            before the step (collision blame is judged from before the impact).
+    """
+
+    s: Array
+    d: Array
+    heading: Array
+    yaw: Array
+    left: Array
+    right: Array
+    wall: Array
+    touching: Array
+    upright: Array | None
+    prev_poses: Array
+    prev_velocity: Array
+
+
+@dataclass
+class Outcome:
+    """What the rules decided about one step (arrays (B, N) unless noted).
+
+    ``terms`` holds each :data:`arena.rewards.RACING_TERMS` term and ``reward`` their sum;
+    ``dnf`` is a code into :data:`DNF_REASONS` (0 where none was decided this step);
+    ``contact``, ``new_contact``, ``at_fault`` and ``closing`` (m/s) are (B, N, N).
+    """
+
+    progress: Array
+    lap_done: Array
+    lap_time: Array
+    off_track: Array
+    all_wheels_on: Array
+    wall: Array
+    contact: Array
+    new_contact: Array
+    at_fault: Array
+    closing: Array
+    terms: dict[str, Array]
+    reward: Array
+    terminated: Array
+    truncated: Array
+    dnf: Array
+    now: Array  # (B,) s since the race's start
+
+
+def _plain_numpy(ops: NumpyOps) -> bool:
+    return ops.name == "numpy" and ops.float == np.dtype(np.float64)
+
+
+def episode_start(
+    ops: NumpyOps,
+    rules: EpisodeRules,
+    s: Array,
+    offset: Array,
+    grid_start: Array,
+) -> EpisodeState:
+    """The state of fresh races: cars at rest at progress ``s`` (B, N) m.
+
+    Args:
+        offset: (B,) m, where the grid was moved along the lap (0: behind the start line).
+        grid_start: (B,) bool: a grid start (lap 1 counts from the start signal); else a
+            mid-lap start (lap 1 counts from the first crossing of the line).
+    """
+    b, n = s.shape
+    # First gate strictly ahead of each car (tracks.LapCounter's searchsorted side="right").
+    ahead = ops.searchsorted(rules.gate_s, ops.mod(s, rules.length))
+    next_gate = ops.where(ahead >= rules.gate_s.shape[0], 0, ahead)
+    # Signed metres from the start line; a mid-lap start's offset is already in ``s``.
+    progress = rules.delta_s(ops, s, 0.0 * s)
+    zeros = ops.zeros((b, n))
+    return EpisodeState(
+        s=s,
+        next_gate=next_gate,
+        laps=ops.full((b, n), -1, dtype=ops.int),
+        race_progress=progress,
+        positions=race_positions(progress, ops),
+        active=ops.full((b, n), True, dtype=ops.bool),
+        finished=ops.full((b, n), False, dtype=ops.bool),
+        finish_time=zeros,
+        off_time=zeros,
+        line_time=zeros,
+        last_lap=zeros,
+        contact=ops.full((b, n, n), False, dtype=ops.bool),
+        history=progress[:, None, :] + ops.zeros((b, rules.window, n)),
+        steps=ops.zeros(b, dtype=ops.int),
+        grid_start=grid_start,
+    )
+
+
+def episode_step(
+    ops: NumpyOps, rules: EpisodeRules, st: EpisodeState, sensed: Sensed
+) -> tuple[EpisodeState, Outcome]:
+    """Apply the race rules to one control step; returns the new state and the outcome.
+
+    Cars that are done (terminated or truncated) this step leave the race in the returned
+    state (``active`` False); the outcome's arrays describe the step itself.
+    """
+    # numpy float64 takes np.where as it is (ops.where only keeps float32 arrays float32).
+    where = np.where if _plain_numpy(ops) else ops.where
+    active = st.active
+    steps = st.steps + 1
+    now = ops.cast(steps, ops.float) / rules.control_hz  # exact: k / 20, not k · 0.05
+    now_n = now[:, None]
+
+    ds = rules.delta_s(ops, sensed.s, st.s)
+    cut = ops.abs(ds) > CUT_JUMP
+    progress = where(active & ~cut, ds, 0.0)
+    race_progress = st.race_progress + progress
+
+    # Ordered gates, exactly tracks.LapCounter (only racing cars count).
+    gate = rules.gate_s[st.next_gate]
+    before = rules.delta_s(ops, gate, st.s)
+    crossed = (ds > 0) & (ds <= rules.max_jump) & (before > 0) & (before <= ds) & active
+    finish_line = crossed & (st.next_gate == 0)
+    lap_done = finish_line & (st.laps >= 0)
+    laps = where(finish_line, st.laps + 1, st.laps)
+    next_gate = where(crossed, st.next_gate + 1, st.next_gate)
+    next_gate = where(next_gate >= rules.gate_s.shape[0], 0, next_gate)
+    first_cross = (st.laps < 0) & (laps == 0)
+    line_time = where(first_cross & ~st.grid_start[:, None], now_n, st.line_time)
+    lap_time = where(lap_done, now_n - line_time, 0.0)
+    line_time = where(lap_done, now_n, line_time)
+    laps_completed = ops.maximum(laps, 0)
+
+    # DeepRacer's off-track rule: all four wheels off the road.
+    heading_error = sensed.yaw - sensed.heading
+    sin_h, cos_h = ops.sin(heading_error)[..., None], ops.cos(heading_error)[..., None]
+    wheel_d = sensed.d[..., None] + rules.wheel_x * sin_h + rules.wheel_y * cos_h
+    on = (wheel_d <= sensed.left[..., None]) & (wheel_d >= -sensed.right[..., None])
+    off_track = ~ops.any(on, axis=-1) & active
+    all_wheels_on = ~ops.any(~on, axis=-1)
+    off_time = where(off_track, st.off_time + rules.dt, 0.0)
+
+    contact = sensed.touching & active[..., :, None] & active[..., None, :]
+    if isinstance(contact, np.ndarray) and not contact.any():
+        # The common case on one race, and the same result without the work.
+        at_fault, closing = contact, ops.zeros(contact.shape)
+    else:
+        at_fault, closing = collision_blame(
+            sensed.prev_poses, sensed.prev_velocity, contact, ops=ops
+        )
+    # A collision counts once, when the contact starts: a long push is one incident.
+    new_contact = contact & ~st.contact
+
+    newly_finished = active & (laps_completed >= rules.laps)
+    finished = st.finished | newly_finished
+    finish_time = where(newly_finished, now_n, st.finish_time)
+    # Finished cars first (earliest first), then by race progress, then the parked cars;
+    # ``top`` exceeds any progress and stays exact in float32 (not 1e12 − t).
+    top = 4.0 * rules.race_distance + 1000.0
+    rank_key = where(finished, top - finish_time, race_progress)
+    positions = race_positions(where(active | finished, rank_key, -top), ops)
+    gained = where(active, st.positions - positions, 0)
+
+    w = rules.window
+    slot = ops.mod(steps, w)
+    oldest = ops.mod(steps + 1, w)
+    if isinstance(st.history, np.ndarray):  # plain indexing: same values, less work
+        rows = np.arange(len(slot))
+        history = st.history.copy()
+        history[rows, slot] = race_progress
+        moved = race_progress - history[rows, oldest]
+    else:
+        onehot = (ops.arange(w)[None, :] == slot[:, None])[..., None]
+        history = where(onehot, race_progress[:, None, :], st.history)
+        moved = race_progress - ops.take_along(history, oldest.reshape(-1, 1, 1), 1)[:, 0, :]
+    still = active & ~newly_finished
+    stuck = still & (steps >= w)[:, None] & (moved < STUCK_DISTANCE)
+    lost = still & (off_time > rules.off_track_limit)
+    flipped = (
+        still & (sensed.upright < FLIP_UPRIGHT) if sensed.upright is not None else still & False
+    )
+    terminated = newly_finished | stuck | lost | flipped
+    crashed = still & False
+    if rules.end_on_crash:  # static configuration
+        crashed = still & (sensed.wall | ops.any(contact, axis=-1))
+        terminated = terminated | crashed
+    truncated = active & ~terminated & (steps >= rules.max_cycles)[:, None]
+    reason = where(lost, OFF_TRACK, where(crashed, CRASHED, where(stuck, STUCK, 0)))
+    dnf = where(flipped, FLIPPED, reason) + where(truncated, TIME_LIMIT, 0)
+
+    wall = sensed.wall & active
+    terms = racing_terms(
+        progress, off_track, wall, at_fault, closing, gained, rules.dt, rules.weights, ops
+    )
+    reward = terms[RACING_TERMS[0]]
+    for name in RACING_TERMS[1:]:
+        reward = reward + terms[name]
+    done = terminated | truncated
+    new = EpisodeState(
+        s=sensed.s,
+        next_gate=next_gate,
+        laps=laps,
+        race_progress=race_progress,
+        positions=positions,
+        active=active & ~done,
+        finished=finished,
+        finish_time=finish_time,
+        off_time=off_time,
+        line_time=line_time,
+        last_lap=where(lap_done, lap_time, st.last_lap),
+        contact=contact,
+        history=history,
+        steps=steps,
+        grid_start=st.grid_start,
+    )
+    out = Outcome(
+        progress=progress,
+        lap_done=lap_done,
+        lap_time=lap_time,
+        off_track=off_track,
+        all_wheels_on=all_wheels_on,
+        wall=wall,
+        contact=contact,
+        new_contact=new_contact,
+        at_fault=at_fault,
+        closing=closing,
+        terms=terms,
+        reward=reward,
+        terminated=terminated,
+        truncated=truncated,
+        dnf=dnf,
+        now=now,
+    )
+    return new, out
+
+
+@dataclass(frozen=True)
+class StartSpec:
+    """A parsed ``reset(options=...)``: direction, grid order and start offset.
+
+    Attributes:
+        reverse: drive the track the other way round.
+        order: (N,) car indices, pole first.
+        offset: m along the lap the grid is moved (0: behind the start line), or None for a
+            random offset (drawn by :func:`start_offset` once the track is known).
+    """
+
+    reverse: bool
+    order: NDArray[np.int64]
+    offset: float | None
+
+
+def start_spec(options: dict[str, Any], rng: np.random.Generator, n_cars: int) -> StartSpec:
+    """Parse ``reset`` options ``direction``, ``grid_order`` and ``start_offset``.
+
+    ``"random"`` draws from ``rng`` in that order (direction, grid order, then the offset in
+    :func:`start_offset`), so a seed fixes all three.
+
+    Raises:
+        SimError: a value outside the grammar.
+
+    >>> spec = start_spec({"grid_order": [1, 0], "start_offset": 12}, np.random.default_rng(0), 2)
+    >>> spec.reverse, spec.order.tolist(), spec.offset
+    (False, [1, 0], 12.0)
+    """
+    direction = options.get("direction", "forward")
+    if direction == "random":
+        direction = "reverse" if rng.random() < 0.5 else "forward"
+    if direction not in ("forward", "reverse"):
+        raise SimError(f"direction must be forward, reverse or random, got {direction!r}")
+    order = options.get("grid_order")
+    if isinstance(order, str) and order == "random":
+        order = rng.permutation(n_cars)
+    try:
+        order = np.arange(n_cars) if order is None else np.asarray(order, dtype=np.int64)
+    except (TypeError, ValueError) as exc:
+        raise SimError(f"grid_order must be a permutation of 0..{n_cars - 1}") from exc
+    if order.ndim != 1 or sorted(order.tolist()) != list(range(n_cars)):
+        raise SimError(f"grid_order must be a permutation of 0..{n_cars - 1}")
+    offset = options.get("start_offset", 0.0)
+    if isinstance(offset, str):
+        if offset != "random":
+            raise SimError(f"start_offset must be metres or 'random', got {offset!r}")
+        return StartSpec(direction == "reverse", order, None)
+    try:
+        value = float(offset)
+    except (TypeError, ValueError) as exc:
+        raise SimError(f"start_offset must be metres or 'random', got {offset!r}") from exc
+    if not math.isfinite(value):
+        raise SimError(f"start_offset must be finite, got {offset!r}")
+    return StartSpec(direction == "reverse", order, value)
+
+
+def start_offset(spec: StartSpec, rng: np.random.Generator, length: float) -> float:
+    """The spec's offset, m, drawing a random one in ``[0, length)`` if asked."""
+    return float(rng.uniform(0.0, length)) if spec.offset is None else spec.offset
+
+
+def global_state(
+    poses: Array,
+    velocity: Array,
+    s: Array,
+    race_progress: Array,
+    active: Array,
+    track: Track,
+    race_distance: float,
+    max_speed: float,
+    ops: NumpyOps = NUMPY,
+) -> Array:
+    """(..., N, STATE_FEATURES) per-car global-state features; parked cars read zeros.
+
+    Per car: x, y (relative to the track's centre, in half-extents), cos and sin of yaw,
+    vx, vy (/ max speed), yaw rate (/ π), s (/ lap length), race progress (/ race
+    distance), racing (1/0). Any leading batch axes (one race: (N, ...); the batched
+    simulator: (B, N, ...)), any :mod:`arena.batch.xp` namespace.
+
+    Args:
+        poses: (..., N, 3) [x m, y m, yaw rad]; velocity: (..., N, 3) [vx, vy m/s world,
+            yaw rate rad/s].
+        s, race_progress: (..., N) m; active: (..., N) still racing.
+        ops: array namespace.
+    """
+    xmin, ymin, xmax, ymax = track.bounds
+    half = max(0.5 * (xmax - xmin), 0.5 * (ymax - ymin), 1.0)
+    feats = ops.stack(
+        [
+            (poses[..., 0] - 0.5 * (xmin + xmax)) / half,
+            (poses[..., 1] - 0.5 * (ymin + ymax)) / half,
+            ops.cos(poses[..., 2]),
+            ops.sin(poses[..., 2]),
+            velocity[..., 0] / max_speed,
+            velocity[..., 1] / max_speed,
+            velocity[..., 2] / math.pi,
+            s / track.length,
+            race_progress / race_distance,
+            ops.full(tuple(s.shape), 1.0),
+        ],
+        axis=-1,
+    )
+    return ops.where(active[..., None], feats, 0.0)

@@ -1,0 +1,245 @@
+"""Nominal vs domain randomisation vs RARL, trained from scratch on the batched backend.
+
+Issue 17's experiment, in one command: for every arm (``--arms``: ``nominal``, ``sample`` —
+domain randomisation over :func:`arena.uncertainty.default_config` —, ``adversarial`` —
+RARL, batched natures) and every seed, ``slipstream train --backend batch`` from scratch with
+the same budget (``--steps`` agent-steps), the same tracks and ``--procedural`` share; then
+every policy is scored on tracks none trained on (``--eval-tracks``: held-out built-ins and
+fresh generated tracks) by ``slipstream robustness --backend batch`` over the full
+perturbation grid (:data:`agents.robustness.GRID`, from ``--starts``). Per run and track:
+nominal score, worst-10 % mean (CVaR₁₀) and the share of grid races not finished; per arm:
+the mean over seeds of the per-track mean, with a 95 % t-interval, and for each robust arm a
+paired t-test against ``nominal`` (seeds paired by index). The goal of the issue is printed
+beside: worst-10 % mean ≥ 1.25 × nominal arm's with non-overlapping intervals, at ≤ 5 %
+loss of nominal score.
+
+Runs already trained (``<out>/<arm>_s<seed>/policy.zip``) are reused, so the command can be
+stopped and started again. Usage (the issue's budget; hours on 2 CPU cores, minutes on a
+GPU with ``--device cuda``)::
+
+    python bench/robust_experiment.py --steps 20000000 --seeds 5 --out runs/robust_experiment \\
+        --json bench/results/robust_experiment.json
+
+A smoke run that checks the pipeline end to end (about a minute)::
+
+    python bench/robust_experiment.py --steps 4096 --seeds 2 --eval-tracks bean \\
+        --out /tmp/robust_smoke --grid-small
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ARMS = ("nominal", "sample", "adversarial")
+TRAIN_TRACKS = ("oval", "hairpins", "chicanes", "bean", "technical", "speedway")
+EVAL_TRACKS = ("monza", "spielberg", "random:9001", "random:9002")
+SMALL_GRID = {
+    "friction": (0.6, 1.0),
+    "motor": (0.8, 1.2),
+    "steer_offset": (0.0,),
+    "latency": (0, 2),
+}
+
+
+def t_interval(values: list[float], level: float = 0.95) -> dict[str, float]:
+    """Mean and the two-sided t confidence interval of the mean (zero width for one value)."""
+    from scipy import stats
+
+    v = np.asarray(values, dtype=np.float64)
+    mean = float(v.mean())
+    if len(v) < 2:
+        return {"mean": mean, "lo": mean, "hi": mean, "n": len(v)}
+    half = float(stats.t.ppf(0.5 + level / 2, len(v) - 1) * v.std(ddof=1) / math.sqrt(len(v)))
+    return {"mean": mean, "lo": mean - half, "hi": mean + half, "n": len(v)}
+
+
+def paired_test(robust: list[float], nominal: list[float]) -> dict[str, float]:
+    """Paired t-test (robust − nominal), seeds paired by index; p two-sided."""
+    from scipy import stats
+
+    n = min(len(robust), len(nominal))
+    if n < 2:
+        return {"n": n, "t": float("nan"), "p": float("nan")}
+    res = stats.ttest_rel(robust[:n], nominal[:n])
+    return {"n": n, "t": float(res.statistic), "p": float(res.pvalue)}
+
+
+def train_run(args: argparse.Namespace, arm: str, seed: int) -> Path:
+    """Train one arm and seed (or reuse its checkpoint); returns the policy path."""
+    from agents.train import TrainArgs, main
+
+    run = f"{arm}_s{seed}"
+    policy = args.out / run / "policy.zip"
+    if policy.is_file():
+        return policy
+    main(
+        TrainArgs(
+            backend="batch",
+            batch_device=args.device,
+            tracks=list(args.train_tracks),
+            eval_tracks=[args.train_tracks[0]],
+            n_cars=args.n_cars,
+            n_envs=args.n_envs,
+            total_timesteps=args.steps,
+            n_steps=args.n_steps,
+            batch_size=args.batch_size,
+            seed=seed,
+            uncertainty=arm,
+            procedural=args.procedural,
+            eval_every=0,
+            save_best=False,
+            out=args.out,
+            run_name=run,
+            progress_bar=sys.stderr.isatty(),
+            nature_every=max(1, args.steps // 10),
+            nature_steps=max(1, args.steps // 20),
+        )
+    )
+    return policy
+
+
+def score_run(args: argparse.Namespace, policy_path: Path) -> dict[str, dict[str, float]]:
+    """Per evaluation track: nominal score, worst-10 % mean and DNF share over the grid."""
+    from agents.loading import load_policy
+    from agents.robustness import evaluate_robustness
+
+    policy = load_policy(str(policy_path))
+    out = {}
+    for track in args.eval_tracks:
+        report = evaluate_robustness(
+            policy,
+            track,
+            n_random=0,
+            nature_steps=0,
+            scales=(1.0,),
+            grid=SMALL_GRID if args.grid_small else None,
+            starts=tuple(args.starts),
+            backend="batch",
+            confirm=0,
+            device=args.device,
+        )
+        races = [r for point in report.grid_races for r in point["races"]]
+        out[track] = {
+            "nominal": report.nominal,
+            "worst10_mean": report.grid["worst10_mean"],
+            "worst": report.grid["worst"],
+            "dnf_share": float(np.mean([not r["finished"] for r in races])),
+        }
+    return out
+
+
+def summarise_arms(runs: dict[str, dict[int, dict[str, dict[str, float]]]]) -> dict[str, Any]:
+    """Per arm: t-intervals over seeds of the per-track means; paired tests against nominal."""
+    per_arm: dict[str, Any] = {}
+    series: dict[str, dict[str, list[float]]] = {}
+    for arm, seeds in runs.items():
+        ordered = [seeds[s] for s in sorted(seeds)]
+        series[arm] = {
+            key: [float(np.mean([t[key] for t in run.values()])) for run in ordered]
+            for key in ("nominal", "worst10_mean", "worst", "dnf_share")
+        }
+        per_arm[arm] = {key: t_interval(vals) for key, vals in series[arm].items()}
+    if "nominal" in series:
+        base = series["nominal"]
+        for arm in series:
+            if arm == "nominal":
+                continue
+            mine = per_arm[arm]
+            ref = per_arm["nominal"]
+            ratio = mine["worst10_mean"]["mean"] / max(ref["worst10_mean"]["mean"], 1e-9)
+            loss = 1.0 - mine["nominal"]["mean"] / max(ref["nominal"]["mean"], 1e-9)
+            mine["vs_nominal"] = {
+                "worst10_ratio": ratio,
+                "nominal_loss": loss,
+                "intervals_disjoint": mine["worst10_mean"]["lo"] > ref["worst10_mean"]["hi"],
+                "paired_worst10": paired_test(series[arm]["worst10_mean"], base["worst10_mean"]),
+                "goal_met": bool(
+                    ratio >= 1.25
+                    and loss <= 0.05
+                    and mine["worst10_mean"]["lo"] > ref["worst10_mean"]["hi"]
+                ),
+            }
+    return per_arm
+
+
+def print_table(summary: dict[str, Any]) -> None:
+    """The per-arm figures as a rich table on stdout."""
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title="robustness from scratch (batch backend) · effective speed, m/s, 95 % CI")
+    for col in ("arm", "nominal", "worst-10 % mean", "DNF share", "w10 / nominal arm", "paired p"):
+        table.add_column(col, justify="right" if col != "arm" else "left")
+
+    def ci(x: dict[str, float]) -> str:
+        return f"{x['mean']:.2f} [{x['lo']:.2f}, {x['hi']:.2f}]"
+
+    for arm, row in summary.items():
+        vs = row.get("vs_nominal")
+        table.add_row(
+            arm,
+            ci(row["nominal"]),
+            ci(row["worst10_mean"]),
+            f"{row['dnf_share']['mean']:.1%}",
+            f"{vs['worst10_ratio']:.2f}" if vs else "–",
+            f"{vs['paired_worst10']['p']:.3f}" if vs else "–",
+        )
+    Console().print(table)
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    """Train every arm and seed (or reuse), score them, print and return the comparison."""
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    p.add_argument("--arms", nargs="+", default=list(ARMS), choices=ARMS)
+    p.add_argument("--seeds", type=int, default=5, help="seeds per arm (1 … N)")
+    p.add_argument("--steps", type=int, default=20_000_000, help="agent-steps per run (budget)")
+    p.add_argument("--train-tracks", nargs="+", default=list(TRAIN_TRACKS))
+    p.add_argument("--eval-tracks", nargs="+", default=list(EVAL_TRACKS))
+    p.add_argument("--procedural", type=float, default=0.25, help="share of generated groups")
+    p.add_argument("--n-envs", type=int, default=64, help="races per track group")
+    p.add_argument("--n-cars", type=int, default=4)
+    p.add_argument("--n-steps", type=int, default=64, help="PPO rollout length per slot")
+    p.add_argument("--batch-size", type=int, default=4096)
+    p.add_argument("--starts", type=float, nargs="+", default=[0.0, 0.5])
+    p.add_argument("--grid-small", action="store_true", help="a 2×2×1×2 grid (smoke runs)")
+    p.add_argument("--device", default="numpy", help="numpy, torch:cpu or cuda")
+    p.add_argument("--out", type=Path, default=Path("runs/robust_experiment"))
+    p.add_argument("--json", type=Path, default=None, help="write every figure here")
+    args = p.parse_args(argv)
+    from tracks import load_track
+
+    held = set(args.eval_tracks) & set(args.train_tracks)
+    if held:
+        p.error(f"evaluation tracks must be held out; also trained on: {sorted(held)}")
+    for name in [*args.train_tracks, *args.eval_tracks]:
+        load_track(name)
+    runs: dict[str, dict[int, dict[str, dict[str, float]]]] = {}
+    for arm in args.arms:
+        for seed in range(1, args.seeds + 1):
+            policy = train_run(args, arm, seed)
+            runs.setdefault(arm, {})[seed] = score_run(args, policy)
+    summary = summarise_arms(runs)
+    print_table(summary)
+    result = {
+        "command": "python bench/robust_experiment.py " + " ".join(argv or sys.argv[1:]),
+        "budget_steps_per_run": args.steps,
+        "train_tracks": args.train_tracks,
+        "eval_tracks": args.eval_tracks,
+        "runs": {arm: {str(s): v for s, v in seeds.items()} for arm, seeds in runs.items()},
+        "arms": summary,
+    }
+    if args.json is not None:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(result, indent=2) + "\n", encoding="utf-8")
+    return result
+
+
+if __name__ == "__main__":
+    main()

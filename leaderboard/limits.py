@@ -1,0 +1,290 @@
+"""The service's front door: request-body caps, authentication before uploads, rate limits.
+
+Two ASGI middlewares, added by :func:`leaderboard.app.create_app`:
+
+:class:`BodyGuard`
+    Every request body is capped *as it is received*, whatever its framing (``Content-Length``
+    or chunked): an upload route (:data:`UPLOAD_ROUTES`) at ``settings.max_upload_bytes`` plus
+    1 MiB of multipart framing, everything else at ``settings.max_request_kb``. A declared
+    length over the cap is refused before the first byte is read; a chunked body is cut off
+    the moment it passes the cap. Upload routes are **authenticated before any of the body is
+    read**: no token, or an unknown or revoked one, is answered 401 at once. Each wait for the
+    next piece of a body is bounded by ``settings.body_idle_timeout_s`` and the whole body by
+    ``settings.upload_timeout_s`` (408). Every early refusal carries ``Connection: close``, so
+    the server stops reading the socket instead of draining what the client still sends.
+
+:class:`RateLimit`
+    Moving-window limits from the maintained ``limits`` library, answered with 429 and
+    ``Retry-After`` (seconds): ``settings.rate_limit_ip`` per client address,
+    ``settings.rate_limit_token`` per bearer token, and ``settings.rate_limit_auth_failures``
+    401 answers per address (once spent, requests from that address that carry credentials
+    get 429 until the window frees). Counters live in ``settings.rate_limit_storage``
+    (``memory://`` per process; ``redis://...`` to share them between server processes).
+    Behind a reverse proxy, run uvicorn with ``--proxy-headers`` so the client address is the
+    real one.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import hashlib
+import math
+import re
+import time
+from collections.abc import Callable
+from typing import Any
+
+import anyio
+import limits
+from limits.aio.strategies import MovingWindowRateLimiter
+from limits.storage import storage_from_string
+from starlette.datastructures import Headers
+from starlette.exceptions import HTTPException
+from starlette.responses import JSONResponse
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from leaderboard.auth import user_for_token
+from leaderboard.settings import Settings
+
+MULTIPART_SLACK = 1 << 20  # bytes of form framing allowed on top of the bundle size limit
+# POST routes that take a bundle: authenticated before their body is read, with the large cap.
+UPLOAD_ROUTES = (
+    re.compile(r"^/api/submissions/?$"),
+    re.compile(r"^/api/submissions/[0-9]+/versions/?$"),
+)
+CLOSE = (b"connection", b"close")
+
+
+def is_upload(scope: Scope) -> bool:
+    """Whether a request is a bundle upload (POST to an :data:`UPLOAD_ROUTES` path)."""
+    return scope["method"] == "POST" and any(r.match(scope["path"]) for r in UPLOAD_ROUTES)
+
+
+def bearer_token(scope: Scope) -> str | None:
+    """The token of an ``Authorization: Bearer <token>`` header, or None."""
+    value = Headers(scope=scope).get("authorization", "")
+    scheme, _, token = value.partition(" ")
+    if scheme.lower() != "bearer" or not token.strip():
+        return None
+    return token.strip()
+
+
+async def refuse(
+    scope: Scope,
+    receive: Receive,
+    send: Send,
+    status: int,
+    detail: str,
+    headers: dict[str, str] | None = None,
+) -> None:
+    """Answer ``{"detail": detail}`` with ``status`` and close the connection afterwards."""
+    response = JSONResponse({"detail": detail}, status_code=status, headers=headers)
+    response.raw_headers.append(CLOSE)
+    await response(scope, receive, send)
+
+
+class BodyTooLarge(HTTPException):
+    """A request body went past its cap while being received (answered 413)."""
+
+    def __init__(self, limit: int) -> None:
+        detail = f"request body is larger than {_size(limit)}"
+        super().__init__(413, detail, {"connection": "close"})
+
+
+class BodyTimeout(HTTPException):
+    """A request body arrived too slowly (answered 408)."""
+
+    def __init__(self, seconds: float) -> None:
+        super().__init__(
+            408, f"request body not received within {seconds:g} s", {"connection": "close"}
+        )
+
+
+def _size(n_bytes: int) -> str:
+    return f"{n_bytes / 2**20:.0f} MiB" if n_bytes >= 2**20 else f"{n_bytes / 1024:.0f} KiB"
+
+
+class BodyGuard:
+    """ASGI middleware: body caps, auth-before-body for uploads, body-read timeouts.
+
+    Args:
+        app: the wrapped application.
+        settings: caps and timeouts (see the module docstring).
+        authenticate: ``token -> bool``, run in a worker thread before an upload's body is
+            read (default: :func:`leaderboard.auth.user_for_token` on the app's database).
+    """
+
+    def __init__(
+        self,
+        app: ASGIApp,
+        settings: Settings,
+        authenticate: Callable[[Scope, str], bool] | None = None,
+    ) -> None:
+        self.app = app
+        self.upload_cap = settings.max_upload_bytes + MULTIPART_SLACK
+        self.request_cap = int(settings.max_request_kb * 1024)
+        self.idle_s = settings.body_idle_timeout_s
+        self.total_s = settings.upload_timeout_s
+        self.authenticate = authenticate or _token_is_valid
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        """Guard one HTTP request."""
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        upload = is_upload(scope)
+        cap = self.upload_cap if upload else self.request_cap
+        length = Headers(scope=scope).get("content-length")
+        if length is not None and (not length.isdigit() or int(length) > cap):
+            bad = not length.isdigit()
+            detail = "bad Content-Length" if bad else f"request body is larger than {_size(cap)}"
+            await refuse(scope, receive, send, 400 if bad else 413, detail)
+            return
+        if upload:
+            token = bearer_token(scope)
+            if token is None or not await anyio.to_thread.run_sync(self.authenticate, scope, token):
+                detail = (
+                    "missing API token: send 'Authorization: Bearer <token>'"
+                    if token is None
+                    else "invalid or revoked API token"
+                )
+                await refuse(scope, receive, send, 401, detail, {"WWW-Authenticate": "Bearer"})
+                return
+        started = False
+
+        async def send_tracking(message: Message) -> None:
+            nonlocal started
+            started = started or message["type"] == "http.response.start"
+            await send(message)
+
+        try:
+            await self.app(scope, self._capped(receive, cap), send_tracking)
+        except (BodyTooLarge, BodyTimeout) as err:
+            # Raised outside a route's own error handling (a mount, a middleware): answer here.
+            if started:
+                raise
+            await refuse(scope, receive, send, err.status_code, err.detail)
+
+    def _capped(self, receive: Receive, cap: int) -> Receive:
+        received = 0
+        deadline = time.monotonic() + self.total_s
+        idle_s, total_s = self.idle_s, self.total_s
+
+        async def capped_receive() -> Message:
+            nonlocal received
+            wait = min(idle_s, deadline - time.monotonic())
+            if wait <= 0:
+                raise BodyTimeout(total_s)
+            try:
+                message = await asyncio.wait_for(receive(), timeout=wait)
+            except TimeoutError:
+                raise BodyTimeout(idle_s if wait == idle_s else total_s) from None
+            if message["type"] == "http.request":
+                received += len(message.get("body", b""))
+                if received > cap:
+                    raise BodyTooLarge(cap)
+            return message
+
+        return capped_receive
+
+
+def _token_is_valid(scope: Scope, token: str) -> bool:
+    """Whether ``token`` belongs to a user of the app's database (nothing is written)."""
+    session = scope["app"].state.sessionmaker()
+    try:
+        return user_for_token(session, token) is not None
+    finally:
+        session.rollback()
+        session.close()
+
+
+# ---- rate limits ------------------------------------------------------------------------------
+
+
+def parse_limit(text: str) -> limits.RateLimitItem:
+    """A ``limits`` rate (``"600/minute"``, ``"20 per 10 seconds"``).
+
+    Raises:
+        ValueError: not a rate the library understands.
+    """
+    return limits.parse(text)
+
+
+def _client_ip(scope: Scope) -> str:
+    client = scope.get("client")
+    return str(client[0]) if client else "unknown"
+
+
+def _token_key(token: str) -> str:
+    return hashlib.sha256(token.encode()).hexdigest()[:32]
+
+
+class RateLimit:
+    """ASGI middleware: per-address, per-token and failed-authentication rate limits (429).
+
+    Args:
+        app: the wrapped application.
+        settings: the limits and the counter storage (see the module docstring).
+    """
+
+    def __init__(self, app: ASGIApp, settings: Settings) -> None:
+        self.app = app
+        uri = settings.rate_limit_storage
+        storage: Any = storage_from_string(uri if uri.startswith("async+") else f"async+{uri}")
+        self.limiter = MovingWindowRateLimiter(storage)
+        self.per_ip = parse_limit(settings.rate_limit_ip)
+        self.per_token = parse_limit(settings.rate_limit_token)
+        self.auth_failures = parse_limit(settings.rate_limit_auth_failures)
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        """Count one HTTP request against its limits; 429 once one is spent."""
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        ip = _client_ip(scope)
+        token = bearer_token(scope)
+        checks = [(self.per_ip, "ip", ip)]
+        if token is not None:
+            checks.append((self.per_token, "token", _token_key(token)))
+            if not await self.limiter.test(self.auth_failures, "authfail", ip):
+                await self._too_many(scope, receive, send, self.auth_failures, "authfail", ip)
+                return
+        for item, *key in checks:
+            if not await self.limiter.hit(item, *key):
+                await self._too_many(scope, receive, send, item, *key)
+                return
+
+        async def send_counting(message: Message) -> None:
+            if message["type"] == "http.response.start" and message["status"] == 401:
+                await self.limiter.hit(self.auth_failures, "authfail", ip)
+            await send(message)
+
+        await self.app(scope, receive, send_counting)
+
+    async def _too_many(
+        self, scope: Scope, receive: Receive, send: Send, item: limits.RateLimitItem, *key: str
+    ) -> None:
+        stats = await self.limiter.get_window_stats(item, *key)
+        retry = max(1, math.ceil(stats.reset_time - time.time()))
+        what = {"ip": "address", "token": "token", "authfail": "failed authentications"}[key[0]]
+        await refuse(
+            scope,
+            receive,
+            send,
+            429,
+            f"rate limit of {item} per {what} reached; retry in {retry} s",
+            {"Retry-After": str(retry)},
+        )
+
+
+__all__ = [
+    "MULTIPART_SLACK",
+    "UPLOAD_ROUTES",
+    "BodyGuard",
+    "BodyTimeout",
+    "BodyTooLarge",
+    "RateLimit",
+    "bearer_token",
+    "is_upload",
+    "parse_limit",
+]

@@ -1,0 +1,229 @@
+"""Critical paths of the ranking that an outside mutation audit found untested.
+
+Each test pins one decision that, if wrong, corrupts production data for good (ratings are
+applied once and never recomputed): every submission gets exactly ``rate(before, ranks)`` for
+its own rank; a live lease is never taken away; a heartbeat keeps a job unclaimable; a new
+version restarts its σ; a slower lap never replaces a track record.
+"""
+
+from __future__ import annotations
+
+from datetime import timedelta
+
+import pytest
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from leaderboard import queue
+from leaderboard.models import (
+    SIGMA0,
+    Job,
+    Race,
+    RaceEntry,
+    Submission,
+    SubmissionVersion,
+    TrackRecord,
+    utcnow,
+)
+from leaderboard.ratings import ordinal, rate
+from leaderboard.results import accept_version
+from leaderboard.settings import Settings
+from tests.leaderboard import factories
+
+
+def _subs(db: Session, settings: Settings, n: int) -> list[Submission]:
+    factories.seed(db, settings, n_submissions=n, n_races=0)
+    return list(db.scalars(select(Submission).order_by(Submission.id)))
+
+
+def _race(db: Session, subs: list[Submission], cars: list[int], *, laps: int = 1) -> Race:
+    """A ranked race where submission ``subs[k]`` drives car ``cars[k]``."""
+    race = Race(
+        kind="ranked",
+        track="oval",
+        laps=laps,
+        entries=[
+            RaceEntry(car=c, submission_id=s.id, version_id=s.active_version_id, name=s.name,
+                      source="x")
+            for s, c in zip(subs, cars, strict=True)
+        ],
+    )  # fmt: skip
+    db.add(race)
+    queue.enqueue(db, race)
+    db.commit()
+    return race
+
+
+def _run(db: Session, race: Race, order: list[int], dnf: set[int] | None = None) -> None:
+    lease = queue.claim(db, owner="t", lease_s=30)
+    assert lease is not None and lease.race_id == race.id
+    assert queue.complete(db, lease, factories.fake_result(race, order=order, dnf=dnf))
+    db.expire_all()
+
+
+def test_each_submission_gets_exactly_rate_of_its_own_rank(db: Session, settings: Settings) -> None:
+    subs = _subs(db, settings, 4)
+    # Distinct starting ratings, so a rating given to the wrong submission shows.
+    start = [(30.0, 5.0), (25.0, SIGMA0), (20.0, 3.0), (27.0, 6.0)]
+    for sub, (mu, sigma) in zip(subs, start, strict=True):
+        sub.mu, sub.sigma, sub.ordinal = mu, sigma, ordinal(mu, sigma)
+    db.commit()
+    # Cars in an order unrelated to the submission order; car 1 retires.
+    cars = [2, 0, 3, 1]
+    race = _race(db, subs, cars)
+    _run(db, race, order=[3, 0, 2, 1], dnf={1})
+    rank_of_car = {3: 1, 0: 2, 2: 3, 1: 4}
+    ranks = [rank_of_car[c] for c in cars]
+    expected = rate(start, ranks)
+    for sub, (mu, sigma) in zip(subs, expected, strict=True):
+        got = db.get(Submission, sub.id)
+        assert got is not None
+        assert (got.mu, got.sigma) == pytest.approx((mu, sigma), abs=1e-9)
+        assert got.ordinal == pytest.approx(ordinal(mu, sigma))
+
+
+def test_a_live_lease_on_its_last_attempt_survives_expire(db: Session, settings: Settings) -> None:
+    subs = _subs(db, settings, 2)
+    race = _race(db, subs, [0, 1])
+    job = db.scalar(select(Job).where(Job.race_id == race.id))
+    assert job is not None
+    job.max_attempts = 1
+    db.commit()
+    lease = queue.claim(db, owner="w", lease_s=60)
+    assert lease is not None and lease.attempt == 1
+    assert queue.expire(db) == 0  # still leased, still alive
+    assert db.get(Job, lease.job_id).status == "leased"  # type: ignore[union-attr]
+    # Once the lease has run out, the job has no attempt left: it fails for good.
+    assert queue.expire(db, now=utcnow() + timedelta(seconds=120)) == 1
+    db.expire_all()
+    assert db.get(Job, lease.job_id).status == "failed"  # type: ignore[union-attr]
+
+
+def test_an_expired_lease_with_attempts_left_is_reclaimed_not_failed(
+    db: Session, settings: Settings
+) -> None:
+    subs = _subs(db, settings, 2)
+    race = _race(db, subs, [0, 1])
+    first = queue.claim(db, owner="w1", lease_s=1)
+    assert first is not None
+    later = utcnow() + timedelta(seconds=30)
+    assert queue.expire(db, now=later) == 0
+    second = queue.claim(db, owner="w2", lease_s=60, now=later)
+    assert second is not None and second.race_id == race.id and second.attempt == 2
+    # The first worker's lease is gone: its result is discarded.
+    assert not queue.complete(db, first, factories.fake_result(race))
+
+
+def test_a_heartbeat_keeps_the_job_unclaimable(db: Session, settings: Settings) -> None:
+    subs = _subs(db, settings, 2)
+    _race(db, subs, [0, 1])
+    lease = queue.claim(db, owner="w1", lease_s=1)
+    assert lease is not None
+    assert queue.heartbeat(db, lease, lease_s=600)
+    later = utcnow() + timedelta(seconds=30)
+    assert queue.claim(db, owner="w2", lease_s=60, now=later) is None
+    job = db.get(Job, lease.job_id)
+    assert job is not None and job.lease_expires_at is not None
+    assert job.lease_expires_at.replace(tzinfo=None) > later.replace(tzinfo=None)
+
+
+def test_a_new_version_restarts_sigma_and_keeps_mu(db: Session, settings: Settings) -> None:
+    subs = _subs(db, settings, 1)
+    sub = subs[0]
+    sub.mu, sub.sigma = 31.0, 2.0
+    sub.ordinal = ordinal(31.0, 2.0)
+    current = db.get(SubmissionVersion, sub.active_version_id)
+    assert current is not None
+    newer = SubmissionVersion(
+        submission_id=sub.id, version=current.version + 1, status="pending",
+        source=current.source, format=current.format, manifest=current.manifest, sha256="0" * 64,
+    )  # fmt: skip
+    db.add(newer)
+    db.flush()
+    accept_version(db, newer)
+    db.commit()
+    db.expire_all()
+    got = db.get(Submission, sub.id)
+    assert got is not None
+    assert got.active_version_id == newer.id
+    assert (got.mu, got.sigma) == (31.0, SIGMA0)
+    assert got.ordinal == pytest.approx(ordinal(31.0, SIGMA0))
+
+
+def test_a_slower_lap_never_replaces_a_track_record(db: Session, settings: Settings) -> None:
+    subs = _subs(db, settings, 2)
+    fast = _race(db, subs, [0, 1])
+    _run(db, fast, order=[0, 1])  # car 0 wins: lap 21.0, car 1: 22.0
+    record = {r.submission_id: r.best_lap for r in db.scalars(select(TrackRecord))}
+    assert record == {subs[0].id: pytest.approx(21.0), subs[1].id: pytest.approx(22.0)}
+    slow = _race(db, subs, [0, 1])
+    _run(db, slow, order=[1, 0])  # now car 0 is second: a slower 22.0
+    record = {r.submission_id: r.best_lap for r in db.scalars(select(TrackRecord))}
+    assert record == {subs[0].id: pytest.approx(21.0), subs[1].id: pytest.approx(21.0)}
+    held = db.scalar(select(TrackRecord).where(TrackRecord.submission_id == subs[0].id))
+    assert held is not None and held.race_id == fast.id
+
+
+def test_ordinal_is_mu_minus_three_sigma() -> None:
+    assert ordinal(25.0, 25.0 / 3.0) == pytest.approx(0.0)
+    assert ordinal(30.0, 2.0) == pytest.approx(24.0)
+
+
+def test_rate_matches_openskill_for_uneven_ratings() -> None:
+    from openskill.models import PlackettLuce
+
+    start = [(30.0, 5.0), (20.0, 3.0), (27.0, 6.0)]
+    model = PlackettLuce()
+    want = model.rate([[model.rating(mu=m, sigma=s)] for m, s in start], ranks=[2, 1, 3])
+    got = rate(start, [2, 1, 3])
+    flat = [x for t in want for x in (t[0].mu, t[0].sigma)]
+    assert [x for pair in got for x in pair] == pytest.approx(flat, abs=1e-12)
+
+
+def test_a_baseline_in_the_grid_ranks_but_is_not_rated(db: Session, settings: Settings) -> None:
+    subs = _subs(db, settings, 2)
+    race = Race(
+        kind="ranked",
+        track="oval",
+        laps=1,
+        entries=[
+            RaceEntry(car=0, submission_id=subs[0].id, version_id=subs[0].active_version_id,
+                      name="a", source="x"),
+            RaceEntry(car=1, submission_id=None, version_id=None, name="pursuit", source="pursuit"),
+            RaceEntry(car=2, submission_id=subs[1].id, version_id=subs[1].active_version_id,
+                      name="b", source="x"),
+        ],
+    )  # fmt: skip
+    db.add(race)
+    queue.enqueue(db, race)
+    db.commit()
+    _run(db, race, order=[2, 1, 0])  # sub b wins, the baseline is second, sub a third
+    expected = rate([(25.0, SIGMA0), (25.0, SIGMA0)], [3, 1])
+    for sub, (mu, sigma) in zip(subs, expected, strict=True):
+        got = db.get(Submission, sub.id)
+        assert got is not None and (got.mu, got.sigma) == pytest.approx((mu, sigma))
+        assert got.races == 1
+
+
+def test_a_submission_twice_in_one_race_is_rated_once(db: Session, settings: Settings) -> None:
+    subs = _subs(db, settings, 2)
+    race = _race(db, [subs[0], subs[0], subs[1]], [0, 1, 2])
+    _run(db, race, order=[0, 2, 1])
+    got = db.get(Submission, subs[0].id)
+    assert got is not None and got.races == 1 and got.wins == 1
+    # Its first (best) car's rank counts: 1st against sub 1's 2nd.
+    mu, sigma = rate([(25.0, SIGMA0), (25.0, SIGMA0)], [1, 2])[0]
+    assert (got.mu, got.sigma) == pytest.approx((mu, sigma))
+
+
+def test_races_and_wins_accumulate_and_an_all_dnf_race_has_no_winner(
+    db: Session, settings: Settings
+) -> None:
+    subs = _subs(db, settings, 2)
+    _run(db, _race(db, subs, [0, 1]), order=[0, 1])
+    _run(db, _race(db, subs, [0, 1]), order=[0, 1])
+    _run(db, _race(db, subs, [0, 1]), order=[0, 1], dnf={0, 1})
+    first, second = (db.get(Submission, s.id) for s in subs)
+    assert first is not None and second is not None
+    assert (first.races, first.wins) == (3, 2)
+    assert (second.races, second.wins) == (3, 0)
