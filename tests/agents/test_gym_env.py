@@ -231,7 +231,7 @@ def test_bundle_path_without_the_sandbox_loader_is_refused(
 ) -> None:
     """Without ``submissions`` imported (no loader registered; another test in this process
     may have imported it, so the registry is emptied here), a bundle path is refused."""
-    import agents.gym_env as gym_env
+    from agents import gym_env
 
     monkeypatch.setattr(gym_env, "_bundle_loader", [])
     root = _bundle(tmp_path)

@@ -13,8 +13,8 @@ from typing import Any
 
 import numpy as np
 import pytest
-from supersuit import concat_vec_envs_v1, pettingzoo_env_to_vec_env_v1
 from pettingzoo.test import parallel_api_test
+from supersuit import concat_vec_envs_v1, pettingzoo_env_to_vec_env_v1
 
 import arena
 from arena.batch.xp import get_ops
