@@ -583,6 +583,54 @@ def _ProgressCallback(progress: ProgressFn, total: int) -> Any:
 
 # ---- training side --------------------------------------------------------------------------
 
+TRAINING_UNCERTAINTY = ("nominal", "sample", "adversarial", "robust_mg")
+"""What ``slipstream train --uncertainty`` takes (see :func:`training_uncertainty`)."""
+
+
+def training_uncertainty(name: str) -> Any:
+    """The :class:`arena.uncertainty.UncertaintyConfig` of a training arm (None: nominal).
+
+    * ``sample``: domain randomisation over :data:`arena.uncertainty.DEFAULT_DYNAMICS`;
+    * ``adversarial``: RARL, a nature per car choosing the dynamics inside that set every
+      step (rate-limited);
+    * ``robust_mg``: Zhang et al.'s robust Markov game: the same nature also chooses the
+      car's *reward* inside :data:`ZHANG_REWARD` (additive noise δ and interval weights on
+      the racing terms), so it plays the worst case of both the transitions and the reward,
+      zero-sum (its reward is minus the car's perturbed reward).
+
+    Raises:
+        PolicyError: an unknown name.
+    """
+    from arena.uncertainty import default_config  # noqa: PLC0415 - heavy, imported on use
+
+    if name not in TRAINING_UNCERTAINTY:
+        raise PolicyError(f"uncertainty must be one of {', '.join(TRAINING_UNCERTAINTY)}: {name}")
+    if name == "nominal":
+        return None
+    if name == "robust_mg":
+        return default_config("adversarial", reward=zhang_reward())
+    return default_config(name)
+
+
+def zhang_reward() -> Any:
+    """The reward uncertainty set of the ``robust_mg`` arm (an ``arena.uncertainty.RewardBounds``).
+
+    Noise level λ = 0.02 per step (δ in ±0.04, about 10 % of a 6 m/s car's 0.3 m of progress
+    per step); progress weighted 0.8–1 and the off-track, wall and blamed-collision
+    penalties 1–2 times; overtakes 0.5–1. Nature's worst case is a car paid less for speed and
+    punished more for mistakes, as Zhang et al.'s bounded reward perturbation.
+    """
+    from arena.uncertainty import RewardBounds  # noqa: PLC0415 - heavy, imported on use
+
+    return RewardBounds(
+        noise=0.02,
+        progress=(0.8, 1.0),
+        off_track=(1.0, 2.0),
+        wall=(1.0, 2.0),
+        collision=(1.0, 2.0),
+        overtake=(0.5, 1.0),
+    )
+
 
 def load_weights(model: Any, path: Path) -> None:
     """Copy a Slipstream checkpoint's policy weights into an SB3 PPO ``model`` (fine-tuning).

@@ -155,9 +155,11 @@ class TrainArgs:
     """SB3 verbosity (0: quiet, 1: print the training table)"""
     uncertainty: str = "nominal"
     """model uncertainty in training: nominal, sample (domain randomisation over the default
-    robust set of arena.uncertainty) or adversarial (RARL: nature agents pick each car's
+    robust set of arena.uncertainty), adversarial (RARL: nature agents pick each car's
     perturbation, every step within a rate limit; racer and nature trained in alternation;
-    with --backend batch the natures of every car of every race act as one batch)"""
+    with --backend batch the natures of every car of every race act as one batch) or
+    robust_mg (adversarial, and the nature also picks the car's reward inside a bounded set:
+    Zhang et al.'s robust Markov game; agents.robustness.training_uncertainty)"""
     nature_every: int = 20_000
     """adversarial: train the nature for nature_steps after every this many racer steps"""
     nature_steps: int = 10_000
@@ -269,8 +271,9 @@ def _check(args: TrainArgs) -> None:
         raise PolicyError("net_arch needs at least one positive layer size")
     if args.backend not in ("bullet", "batch"):
         raise PolicyError(f"backend must be bullet or batch, got {args.backend!r}")
-    if args.uncertainty not in ("nominal", "sample", "adversarial"):
-        raise PolicyError(f"uncertainty must be nominal, sample or adversarial: {args.uncertainty}")
+    from agents.robustness import training_uncertainty  # noqa: PLC0415 - heavy, imported on use
+
+    training_uncertainty(args.uncertainty)  # raises on an unknown arm
     if args.init_from is not None and not Path(args.init_from).is_file():
         raise PolicyError(f"init_from: no such checkpoint {args.init_from}")
     parse_mix(args.opponent_mix)  # checked even when no car is an opponent: a typo is a typo
@@ -713,9 +716,9 @@ def main(args: TrainArgs) -> dict[str, Any]:
     # Training envs may add model uncertainty; evaluation and the checkpoint stay nominal.
     train_env_kwargs = dict(env_kwargs)
     if args.uncertainty != "nominal":
-        from arena.uncertainty import default_config  # noqa: PLC0415 - heavy, imported on use
+        from agents.robustness import training_uncertainty  # noqa: PLC0415 - heavy
 
-        train_env_kwargs["uncertainty"] = default_config(args.uncertainty)
+        train_env_kwargs["uncertainty"] = training_uncertainty(args.uncertainty)
 
     # Seeding: one block.
     random.seed(args.seed)
@@ -825,7 +828,7 @@ def main(args: TrainArgs) -> dict[str, Any]:
 
         redraw = procedural_callback(args, vec_env)
         callback = CallbackList([monitor, redraw])
-    if args.uncertainty == "adversarial":
+    if args.uncertainty in ("adversarial", "robust_mg"):  # a nature to train
         from agents.robustness import rarl_callback  # noqa: PLC0415 - heavy, imported on use
 
         callback = rarl_callback(args, vec_env, train_env_kwargs, run_dir, callback)
