@@ -23,6 +23,7 @@ from tracks import Track
 from tracks.geometry import three_point_curvature
 
 FloatArray = NDArray[np.float64]
+REFERENCE_WHEELBASE = CarParams().wheelbase  # m: the F1TENTH car, for which look-aheads are tuned
 BASELINES = ("pursuit", "gap", "random")  # need only the observation (and the car)
 TRACK_BASELINES = ("raceline",)  # also need the track: make_baseline(..., track=)
 
@@ -47,10 +48,14 @@ class RandomPolicy:
 class PursuitPolicy:
     """Pure pursuit along the centre line with a curvature-based speed profile.
 
-    Steering: the look-ahead point at ``ld = 0.8 + 0.3 v`` m (1–4 m) on the centre-line
-    preview; steer to the arc through it (``δ = atan(2 L sin α / ld)``). Speed: each
-    preview point allows ``sqrt(a_lat / κ)`` (κ from three consecutive points), reachable
-    only if the car can brake to it in time (``v² ≤ v_allowed² + 2 a_brake · distance``).
+    Steering: the look-ahead point at ``ld = (0.8 + 0.3 v) k`` m (``k`` to ``4 k``) on the
+    centre-line preview, where ``k = L / 0.33 m`` scales the look-ahead to the car's wheelbase
+    ``L`` (1 for the F1TENTH car; 0.5 for the DeepRacer car, whose tracks are 0.6-1.1 m wide
+    and bend at 0.6 m radii, where a 1.6 m look-ahead cuts an S-bend into the wall: AWS
+    DeepRacer "Carrera" track); below the first preview point (1 m) it aims along the chord
+    from the car to that point. Steer to the arc through it (``δ = atan(2 L sin α / ld)``).
+    Speed: each preview point allows ``sqrt(a_lat / κ)`` (κ from three consecutive points),
+    reachable only if the car can brake to it in time (``v² ≤ v_allowed² + 2 a_brake · distance``).
     It lifts for a car close ahead in its path.
 
     Args:
@@ -76,6 +81,8 @@ class PursuitPolicy:
         self.brake = brake
         self.max_range = max_range
         self.dist = np.asarray(LOOKAHEAD)
+        # look-ahead scale: the F1TENTH car's wheelbase is the reference (k = 1)
+        self.k_look = self.params.wheelbase / REFERENCE_WHEELBASE
 
     def reset(self, seed: int | None = None) -> None:
         """Stateless: nothing to reset."""
@@ -86,10 +93,10 @@ class PursuitPolicy:
         ego = obs[lay.ego].astype(np.float64)
         v = float(ego[0]) * p.max_speed
         pts = obs[lay.track_ahead].astype(np.float64).reshape(-1, 2) * self.max_range
-        ld = min(max(0.8 + 0.3 * v, self.dist[0]), 4.0)
-        target = np.array(
-            [np.interp(ld, self.dist, pts[:, 0]), np.interp(ld, self.dist, pts[:, 1])]
-        )
+        ld = self.lookahead(v)
+        # the car itself (0, 0) is the point 0 m ahead, for look-aheads under the first preview
+        ahead, chain = np.concatenate([[0.0], self.dist]), np.vstack([[0.0, 0.0], pts])
+        target = np.array([np.interp(ld, ahead, chain[:, 0]), np.interp(ld, ahead, chain[:, 1])])
         dist = max(float(np.hypot(*target)), 1e-3)
         alpha = math.atan2(target[1], target[0])
         steer = math.atan(2.0 * p.wheelbase * math.sin(alpha) / dist)
@@ -97,6 +104,11 @@ class PursuitPolicy:
         v_target = min(v_target, self._follow_speed(obs, v))
         throttle = float(np.clip(2.0 * (v_target - v), -1.0, 1.0))
         return np.array([np.clip(steer / p.max_steer, -1, 1), throttle], dtype=np.float32)
+
+    def lookahead(self, v: float) -> float:
+        """Look-ahead distance at speed ``v`` m/s: ``(0.8 + 0.3 v) k`` m within ``[k, 4 k]``."""
+        k = self.k_look
+        return min(max((0.8 + 0.3 * v) * k, k), 4.0 * k)
 
     def _speed_limit(self, pts: FloatArray, v: float) -> float:
         """Fastest speed from which every corner in the preview can still be taken, m/s."""
@@ -194,7 +206,8 @@ class RacelinePolicy(PursuitPolicy):
     centre-line point ``s`` of the track (both directions, so reversed races work) the car's
     pose that those two imply is built and the centre line ahead of it is compared with the
     observed one; the best match (searched within 3 m of the last one once found) gives the
-    pose. Steering: the look-ahead point ``ld = 0.8 + 0.3 v`` m (1-4 m) along the race line,
+    pose. Steering: the look-ahead point ``ld`` of :meth:`PursuitPolicy.lookahead` along the
+    race line,
     ``δ = atan(2 L sin α / ld)``. Speed: the race line's speed times ``speed_scale``, capped
     by the car's top speed and ``sqrt(a_lat / κ)`` of the race line, with a braking pass
     (``v² ≤ v_next² + 2 a_brake ds``) so it slows before bends; it lifts for a car close ahead
@@ -311,7 +324,7 @@ class RacelinePolicy(PursuitPolicy):
         r = int(cand[np.argmin(np.linalg.norm(line[cand] - pose[:2], axis=1))])
         self._r = r
         v = float(obs[self.layout.ego][0]) * p.max_speed
-        ld = min(max(0.8 + 0.3 * v, 1.0), 4.0)
+        ld = self.lookahead(v)
         k, run = r, 0.0
         while run < ld:
             run += float(seg[k])

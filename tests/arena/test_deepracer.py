@@ -25,7 +25,8 @@ from arena.deepracer import (
     read_model_metadata,
 )
 from tests.arena.conftest import pursuit_driver
-from tests.tracks.builders import stadium_points
+from tests.tracks.builders import chicane_points, stadium_points
+from tests.tracks.test_real_files import deepracer_rows, save_npy
 from tracks import Track
 
 # ---- the AWS DeepRacer Developer Guide's reward functions, verbatim -------------------------------
@@ -423,3 +424,31 @@ def test_deepracer_preset_with_a_model_metadata_action_space(tmp_path: Path, bac
     assert {info.get("dnf_reason") for info in infos.values()} == {"off_track"}
     # 15 Hz: the ~16 m to the first bend at 1.2 m/s take about 13 s, about 200 steps.
     assert 100 < steps < 400
+
+
+def test_pursuit_keeps_the_deepracer_car_on_a_deepracer_chicane(tmp_path: Path) -> None:
+    # The AWS DeepRacer "Carrera" track (0.66 m wide) has an S-bend of 0.62-0.70 m radii after
+    # a short straight. Pure pursuit with the F1TENTH car's 1.6 m look-ahead at 3 m/s cut it,
+    # ran off the inside and stuck on the wall there; scaled to the DeepRacer car's wheelbase
+    # it keeps all four wheels on the road for the whole lap, as DeepRacer's own
+    # ``all_wheels_on_track`` says.
+    pts = chicane_points(radius=0.62, angle=math.pi / 3)
+    path = save_npy(tmp_path / "chicane.npy", deepracer_rows(pts, 0.33, 0.33))
+    wheels: list[bool] = []
+
+    def record(params: dict[str, Any]) -> float:
+        wheels.append(params["all_wheels_on_track"])
+        return 1.0
+
+    env = RacingEnv(track=str(path), n_cars=1, laps=1, car="deepracer", reward=record)
+    drive = pursuit_driver(env)
+    obs, _ = env.reset(seed=0)
+    infos: dict[str, Any] = {}
+    wall = 0
+    while env.agents:
+        obs, _, _, _, infos = env.step({a: drive(obs[a]) for a in env.agents})
+        wall += bool(infos["car_0"]["wall_contact"])
+    env.close()
+    assert infos["car_0"]["laps_completed"] == 1
+    assert wall == 0
+    assert len(wheels) > 100 and all(wheels)

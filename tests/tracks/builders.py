@@ -101,3 +101,20 @@ def hairpin_points(radius: float = 0.6, spacing: float = 0.2) -> FloatArray:
     pieces = [(12.0, 0.0), (np.pi * radius, 1 / radius), *s_bend, (back, 0.0)]
     pieces.append((np.pi * 1.6, 1 / 1.6))
     return turtle(pieces, spacing=spacing)
+
+
+def chicane_points(
+    radius: float = 0.62, angle: float = np.pi / 3, spacing: float = 0.15
+) -> FloatArray:
+    """Anticlockwise DeepRacer-sized circuit (about 27 m) with a chicane on both straights.
+
+    Shaped like the AWS DeepRacer "Carrera" track's S-bend (0.62-0.70 m radii between 2.5-3 m
+    straights): each straight is 3 m, a chicane (right ``angle``, left ``2 angle``, right
+    ``angle``, all at ``radius`` m) and 3 m more; 1.6 m-radius 180° turns join them. The two
+    chicanes shift their straights by the same amount in opposite directions, so it closes.
+    """
+    chicane = [(radius * angle, -1 / radius), (2 * radius * angle, 1 / radius)]
+    chicane.append((radius * angle, -1 / radius))
+    turn = (np.pi * 1.6, 1 / 1.6)
+    pieces = [(3.0, 0.0), *chicane, (3.0, 0.0), turn, (3.0, 0.0), *chicane, (3.0, 0.0), turn]
+    return turtle(pieces, spacing=spacing)
