@@ -81,7 +81,7 @@ class TrainArgs:
     learning_rate: float = 3e-4
     """Adam learning rate"""
     anneal_lr: bool = True
-    """decay the learning rate linearly to 0 over total_timesteps (CleanRL's default)"""
+    """decay the learning rate linearly towards 0 over total_timesteps (CleanRL's schedule)"""
     n_steps: int = 128
     """steps per slot per rollout (rollout size = n_steps × n_envs × n_learners)"""
     batch_size: int = 512
@@ -752,8 +752,12 @@ def main(args: TrainArgs) -> dict[str, Any]:
         )
     vec_env.seed(args.seed)
     lr = args.learning_rate
+    # CleanRL's annealing: the update after rollout i of N uses lr·(1 − (i−1)/N). SB3 hands the
+    # schedule the progress left *after* the rollout, 1 − i/N, which is 0 on the last update:
+    # adding one rollout's share back keeps that update (a one-rollout run's only one) learning.
+    share = args.n_steps * vec_env.num_envs / args.total_timesteps
     hyper: dict[str, Any] = {
-        "learning_rate": (lambda remaining: remaining * lr) if args.anneal_lr else lr,
+        "learning_rate": (lambda left: min(1.0, left + share) * lr) if args.anneal_lr else lr,
         "n_steps": args.n_steps,
         "batch_size": args.batch_size,
         "n_epochs": args.n_epochs,
