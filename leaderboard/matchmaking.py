@@ -13,8 +13,13 @@
   ones nearest in μ, within a window that is usually small and sometimes wide (Halite's
   ``5 / (0.01 + U)^0.65``), so ratings meet similar ratings without forming closed groups.
 * 2–8 cars (``settings.min_cars``..``settings.max_cars``, never more than the pool), the grid
-  shuffled, on the track used least in the last 200 ranked races (ties at random), with a
-  fresh seed.
+  shuffled, on the track used least in the last 200 ranked races of its car class (ties at
+  random), with a fresh seed.
+* **One ladder per car class.** A version drives the car its manifest declares
+  (``f1tenth`` by default, or ``deepracer``: :mod:`arena.cars`); every version of a
+  submission declares the same one (an upload that changes it is refused), and a race's
+  entrants all come from the seed's class, so a submission only ever meets cars like its
+  own. Its validation race is run with its car too.
 """
 
 from __future__ import annotations
@@ -28,13 +33,25 @@ from functools import cache
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from leaderboard.models import SIGMA0, Race, RaceEntry, Submission, SubmissionVersion
-from leaderboard.queue import enqueue, pending
+from leaderboard.errors import Conflict
+from leaderboard.models import (
+    DEFAULT_CAR,
+    SIGMA0,
+    Job,
+    Race,
+    RaceEntry,
+    Submission,
+    SubmissionVersion,
+)
+from leaderboard.queue import enqueue
 from leaderboard.settings import Settings
 
 VALIDATION_PRIORITY = 0
 RANKED_PRIORITY = 10
 RECENT_RACES = 200  # races looked at to vary the tracks
+# Race kinds that are not the ladder's (robustness runs, tournament heats): they neither count
+# as a submission's queued ladder races nor hold back the ranked top-up.
+OFF_LADDER = ("robustness", "tournament")
 
 
 @dataclass(frozen=True)
@@ -49,6 +66,7 @@ class Candidate:
     sigma: float
     races: int
     queued: int
+    car: str = DEFAULT_CAR
 
     @property
     def weight(self) -> float:
@@ -80,14 +98,45 @@ def validation_priority(session: Session, user_id: int | None) -> int:
     return RANKED_PRIORITY
 
 
+def assign_car(session: Session, version: SubmissionVersion) -> str:
+    """Set a new version's car class from its manifest (``car``, default ``f1tenth``).
+
+    Raises:
+        Conflict: another (not rejected) version of the submission drives another car.
+    """
+    car = str((version.manifest or {}).get("car") or DEFAULT_CAR)
+    other = session.scalar(
+        select(SubmissionVersion.car).where(
+            SubmissionVersion.submission_id == version.submission_id,
+            SubmissionVersion.id != version.id,
+            SubmissionVersion.status != "rejected",
+            SubmissionVersion.car != car,
+        )
+    )
+    if other is not None:
+        raise Conflict(
+            f"this submission races the {other!r} car; a {car!r} bundle needs a submission "
+            "of its own (give its manifest another name)"
+        )
+    version.car = car
+    return car
+
+
 def schedule_validation(session: Session, settings: Settings, version: SubmissionVersion) -> Race:
-    """Queue the validation race of a new version (one lap against a baseline), fair-queued."""
+    """Queue the validation race of a new version (one lap against a baseline, with the
+    version's car), fair-queued.
+
+    Raises:
+        Conflict: the version's car is not its submission's (:func:`assign_car`).
+    """
+    car = assign_car(session, version)
     sub = session.get(Submission, version.submission_id)
     name = sub.name if sub is not None else f"submission-{version.submission_id}"
     priority = validation_priority(session, sub.user_id if sub is not None else None)
     race = Race(
         kind="validation",
         track=settings.validation_track,
+        car=car,
         seed=random.randrange(2**31),
         laps=1,
         penalties=False,
@@ -112,12 +161,16 @@ def schedule_validation(session: Session, settings: Settings, version: Submissio
 
 
 def candidates(session: Session) -> list[Candidate]:
-    """Active submissions with a validated version, with their queued-race counts."""
+    """Active submissions with a validated version, with their queued ladder-race counts."""
     queued = dict(
         session.execute(
             select(RaceEntry.submission_id, func.count())
             .join(Race, Race.id == RaceEntry.race_id)
-            .where(Race.status.in_(("queued", "running")), RaceEntry.submission_id.is_not(None))
+            .where(
+                Race.status.in_(("queued", "running")),
+                Race.kind.not_in(OFF_LADDER),
+                RaceEntry.submission_id.is_not(None),
+            )
             .group_by(RaceEntry.submission_id)
         ).all()
     )
@@ -136,6 +189,7 @@ def candidates(session: Session) -> list[Candidate]:
             sigma=sub.sigma,
             races=sub.races,
             queued=int(queued.get(sub.id, 0)),
+            car=ver.car,
         )
         for sub, ver in rows
     ]
@@ -144,16 +198,22 @@ def candidates(session: Session) -> list[Candidate]:
 def pick_entrants(
     pool: Sequence[Candidate], rng: random.Random, *, min_cars: int = 2, max_cars: int = 4
 ) -> list[Candidate]:
-    """Draw one race's entrants: a seed by weight, then opponents of similar μ.
+    """Draw one race's entrants: a seed by weight, then opponents of similar μ in its car
+    class.
 
-    Returns an empty list if the pool has fewer than ``min_cars`` submissions.
+    Returns an empty list if no car class has ``min_cars`` submissions in the pool.
     """
-    if len(pool) < max(min_cars, 2):
+    ladders: dict[str, list[Candidate]] = {}
+    for c in pool:
+        ladders.setdefault(c.car, []).append(c)
+    eligible = [c for c in pool if len(ladders[c.car]) >= max(min_cars, 2)]
+    if not eligible:
         return []
-    seed = rng.choices(list(pool), weights=[c.weight for c in pool], k=1)[0]
-    n_cars = rng.randint(min_cars, min(max_cars, len(pool)))
+    seed = rng.choices(eligible, weights=[c.weight for c in eligible], k=1)[0]
+    ladder = ladders[seed.car]
+    n_cars = rng.randint(min_cars, min(max_cars, len(ladder)))
     others = sorted(
-        (c for c in pool if c.submission_id != seed.submission_id),
+        (c for c in ladder if c.submission_id != seed.submission_id),
         key=lambda c: (abs(c.mu - seed.mu), rng.random()),
     )
     window = int(5 / (0.01 + rng.random()) ** 0.65)
@@ -163,11 +223,14 @@ def pick_entrants(
     return chosen
 
 
-def pick_track(session: Session, tracks: Sequence[str], rng: random.Random) -> str:
-    """The track used least in the last races (ties broken at random)."""
+def pick_track(
+    session: Session, tracks: Sequence[str], rng: random.Random, car: str = DEFAULT_CAR
+) -> str:
+    """The track used least in the last ranked races of car class ``car`` (ties broken at
+    random)."""
     recent = (
         select(Race.track)
-        .where(Race.kind == "ranked")
+        .where(Race.kind == "ranked", Race.car == car)
         .order_by(Race.id.desc())
         .limit(RECENT_RACES)
         .subquery()
@@ -204,9 +267,11 @@ def schedule_ranked(
         entrants = pick_entrants(pool, rng, min_cars=settings.min_cars, max_cars=settings.max_cars)
         if not entrants:
             break
+        car = entrants[0].car  # one class per race (pick_entrants)
         race = Race(
             kind="ranked",
-            track=pick_track(session, tracks, rng),
+            track=pick_track(session, tracks, rng, car),
+            car=car,
             seed=rng.randrange(2**31),
             laps=settings.race_laps,
             penalties=True,
@@ -228,11 +293,25 @@ def schedule_ranked(
     return races
 
 
+def ladder_pending(session: Session) -> int:
+    """Jobs of the ladder (validation and ranked races) waiting or running."""
+    return int(
+        session.scalar(
+            select(func.count(Job.id))
+            .join(Race, Race.id == Job.race_id)
+            .where(Job.status.in_(("queued", "leased")), Race.kind.not_in(OFF_LADDER))
+        )
+        or 0
+    )
+
+
 def top_up(
     session: Session, settings: Settings, target: int, rng: random.Random | None = None
 ) -> int:
-    """Queue ranked races until ``target`` jobs are waiting or running; returns how many."""
-    missing = target - pending(session)
+    """Queue ranked races until ``target`` ladder jobs are waiting or running (robustness
+    runs and tournament heats are not counted: the ladder keeps running beside them);
+    returns how many."""
+    missing = target - ladder_pending(session)
     if missing <= 0:
         return 0
     return len(schedule_ranked(session, settings, missing, rng))

@@ -6,8 +6,8 @@ table              holds
 users              people who upload (name, admin flag)
 api_tokens         bearer tokens, stored as SHA-256 hashes (the token itself is shown once)
 submissions        a named entry of a user: status, current rating (μ, σ, ordinal), counts
-submission_versions  each uploaded bundle of a submission (validated or rejected)
-races              a scheduled or run race: track, seed, laps, status, result JSON, replays
+submission_versions  each uploaded bundle of a submission (validated or rejected), its car
+races              a scheduled or run race: track, car, seed, laps, status, result JSON, replays
 race_entries       one car of a race: which submission/version, its result, rating change
 race_logs          one car's owner-only logs: DNF detail, policy output, sandbox mode
 web_sessions       signed-in browsers (cookie hash, the API token used, CSRF token)
@@ -40,6 +40,7 @@ from sqlalchemy import (
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
 
 MU0 = 25.0  # OpenSkill's default initial μ
+DEFAULT_CAR = "f1tenth"  # = arena.cars.DEFAULT_CAR (tested equal; no simulator here)
 SIGMA0 = 25.0 / 3.0  # OpenSkill's default initial σ
 
 
@@ -151,6 +152,9 @@ class SubmissionVersion(Base):
     status: Mapped[str] = mapped_column(String(16), default="pending")
     error: Mapped[str | None] = mapped_column(Text)
     created_at: Mapped[datetime] = mapped_column(DateTime, default=utcnow)
+    # The car class it races in (the manifest's ``car``; every version of a submission has
+    # the same one): its ladder.
+    car: Mapped[str] = mapped_column(String(16), default=DEFAULT_CAR, server_default=DEFAULT_CAR)
 
     submission: Mapped[Submission] = relationship(
         back_populates="versions", foreign_keys=[submission_id]
@@ -179,6 +183,7 @@ class Race(Base):
     seed: Mapped[int] = mapped_column(Integer, default=0)
     laps: Mapped[int] = mapped_column(Integer, default=2)
     penalties: Mapped[bool] = mapped_column(Boolean, default=True)  # DeepRacer time penalties
+    car: Mapped[str] = mapped_column(String(16), default=DEFAULT_CAR, server_default=DEFAULT_CAR)
     created_at: Mapped[datetime] = mapped_column(DateTime, default=utcnow)
     started_at: Mapped[datetime | None] = mapped_column(DateTime)
     finished_at: Mapped[datetime | None] = mapped_column(DateTime)

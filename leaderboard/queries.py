@@ -24,6 +24,7 @@ from sqlalchemy.orm import Session, selectinload
 from leaderboard.cache import cache_for
 from leaderboard.errors import NotFound
 from leaderboard.models import (
+    DEFAULT_CAR,
     Race,
     RaceEntry,
     RaceLog,
@@ -86,6 +87,7 @@ class LeaderboardRow(_Model):
     name: str
     author: str
     version: int | None
+    car: str  # its car class (its ladder)
     ordinal: float
     mu: float
     sigma: float
@@ -100,6 +102,7 @@ class VersionInfo(_Model):
     version: int
     status: str  # pending | validated | rejected
     format: str
+    car: str
     size_bytes: int
     sha256: str
     error: str | None
@@ -147,9 +150,10 @@ class RaceSummary(_Model):
     """A race in a list."""
 
     id: int
-    kind: str  # validation | ranked
+    kind: str  # validation | ranked | robustness | tournament
     status: str  # queued | running | finished | failed
     track: str
+    car: str
     laps: int
     seed: int
     n_cars: int
@@ -181,6 +185,7 @@ class SubmissionSummary(_Model):
     status: str  # pending | active | rejected | withdrawn
     version: int | None  # the version that races
     latest_version: int | None
+    car: str | None  # the car class its versions drive (None before its first upload)
     mu: float
     sigma: float
     ordinal: float
@@ -248,6 +253,26 @@ def _provisional(k: int) -> ColumnElement[int]:
     return case((Submission.races < k, 1), else_=0)
 
 
+def car_classes() -> tuple[str, ...]:
+    """The car classes, one ladder each (:data:`arena.cars.CAR_PRESETS`; no pybullet)."""
+    from arena.cars import CAR_PRESETS  # noqa: PLC0415 - light; keeps queries' imports lean
+
+    return tuple(CAR_PRESETS)
+
+
+def check_car(car: str | None) -> str | None:
+    """``car`` if it names a car class, None for None or "" (every class).
+
+    Raises:
+        NotFound: no such car class.
+    """
+    if not car:
+        return None
+    if car not in car_classes():
+        raise NotFound(f"no car class {car!r} (one of {', '.join(car_classes())})")
+    return car
+
+
 def _leaderboard_fingerprint(session: Session) -> tuple[Any, ...]:
     """What changes whenever the leaderboard can: every writer bumps ``updated_at``; the
     active count also catches a status changed by hand (both are index look-ups)."""
@@ -263,32 +288,42 @@ def leaderboard(
     per_page: int = 50,
     provisional_races: int = PROVISIONAL_RACES,
     max_age_s: float = SNAPSHOT_MAX_AGE_S,
+    car: str | None = None,
 ) -> Page[LeaderboardRow]:
     """Active submissions by ordinal (μ − 3σ), best first; provisional ones after the rest.
 
     A submission with fewer than ``provisional_races`` rated races is *provisional*: its
     ordinal says little yet (a new one starts at 0, above many established negative ones), so
-    it is listed after every established submission, marked ``provisional``. Snapshots are
+    it is listed after every established submission, marked ``provisional``. ``car`` keeps
+    one car class's ladder (None: every class, each row saying its car). Snapshots are
     cached per page (:mod:`leaderboard.cache`) until a submission changes.
     """
     page, per_page = _clamp(page, per_page)
     return cache_for(session).get(
-        ("leaderboard", page, per_page, provisional_races),
+        ("leaderboard", page, per_page, provisional_races, car),
         _leaderboard_fingerprint(session),
-        lambda: _leaderboard_page(session, page, per_page, provisional_races),
+        lambda: _leaderboard_page(session, page, per_page, provisional_races, car),
         max_age_s,
     )
 
 
 def _leaderboard_page(
-    session: Session, page: int, per_page: int, provisional_races: int
+    session: Session, page: int, per_page: int, provisional_races: int, car: str | None
 ) -> Page[LeaderboardRow]:
-    total = _count(session, select(func.count(Submission.id)).where(Submission.status == "active"))
+    where: list[ColumnElement[bool]] = [Submission.status == "active"]
+    if car is not None:
+        where.append(SubmissionVersion.car == car)
+    total = _count(
+        session,
+        select(func.count(Submission.id))
+        .outerjoin(SubmissionVersion, SubmissionVersion.id == Submission.active_version_id)
+        .where(*where),
+    )
     rows = session.execute(
-        select(Submission, User.name, SubmissionVersion.version)
+        select(Submission, User.name, SubmissionVersion.version, SubmissionVersion.car)
         .join(User, User.id == Submission.user_id)
         .outerjoin(SubmissionVersion, SubmissionVersion.id == Submission.active_version_id)
-        .where(Submission.status == "active")
+        .where(*where)
         .order_by(_provisional(provisional_races), Submission.ordinal.desc(), Submission.id)
         .offset((page - 1) * per_page)
         .limit(per_page)
@@ -301,6 +336,7 @@ def _leaderboard_page(
             name=sub.name,
             author=author,
             version=version,
+            car=version_car or DEFAULT_CAR,
             ordinal=sub.ordinal,
             mu=sub.mu,
             sigma=sub.sigma,
@@ -308,13 +344,13 @@ def _leaderboard_page(
             wins=sub.wins,
             win_rate=_win_rate(sub.wins, sub.races),
         )
-        for i, (sub, author, version) in enumerate(rows)
+        for i, (sub, author, version, version_car) in enumerate(rows)
     ]
     return Page(items=items, total=total, page=page, per_page=per_page)
 
 
 def _summary(
-    sub: Submission, author: str, version: int | None, latest: int | None
+    sub: Submission, author: str, version: int | None, latest: int | None, car: str | None
 ) -> dict[str, Any]:
     return {
         "id": sub.id,
@@ -323,6 +359,7 @@ def _summary(
         "status": sub.status,
         "version": version,
         "latest_version": latest,
+        "car": car,
         "mu": sub.mu,
         "sigma": sub.sigma,
         "ordinal": sub.ordinal,
@@ -350,7 +387,7 @@ def submissions(
         .scalar_subquery()
     )
     rows = session.execute(
-        select(Submission, User.name, SubmissionVersion.version, latest)
+        select(Submission, User.name, SubmissionVersion.version, latest, _car_of_submission())
         .join(User, User.id == Submission.user_id)
         .outerjoin(SubmissionVersion, SubmissionVersion.id == Submission.active_version_id)
         .where(*where)
@@ -358,23 +395,41 @@ def submissions(
         .offset((page - 1) * per_page)
         .limit(per_page)
     ).all()
-    items = [SubmissionSummary(**_summary(s, a, v, lv)) for s, a, v, lv in rows]
+    items = [SubmissionSummary(**_summary(s, a, v, lv, c)) for s, a, v, lv, c in rows]
     return Page(items=items, total=total, page=page, per_page=per_page)
+
+
+def _car_of_submission() -> Any:
+    """A correlated subquery: the car class of a submission's newest version."""
+    return (
+        select(SubmissionVersion.car)
+        .where(SubmissionVersion.submission_id == Submission.id)
+        .order_by(SubmissionVersion.version.desc())
+        .limit(1)
+        .correlate(Submission)
+        .scalar_subquery()
+    )
 
 
 def submission_rank(
     session: Session, sub: Submission, *, provisional_races: int = PROVISIONAL_RACES
 ) -> int | None:
-    """The leaderboard rank of an active submission (None otherwise), in
+    """The rank of an active submission in its car class's ladder (None otherwise), in
     :func:`leaderboard`'s order: established submissions first, then provisional ones."""
     if sub.status != "active":
         return None
+    car = session.scalar(
+        select(SubmissionVersion.car).where(SubmissionVersion.id == sub.active_version_id)
+    )
     mine = 1 if sub.races < provisional_races else 0
     group = _provisional(provisional_races)
     better = _count(
         session,
-        select(func.count(Submission.id)).where(
+        select(func.count(Submission.id))
+        .join(SubmissionVersion, SubmissionVersion.id == Submission.active_version_id)
+        .where(
             Submission.status == "active",
+            SubmissionVersion.car == (car or DEFAULT_CAR),
             (group < mine)
             | (
                 (group == mine)
@@ -403,7 +458,13 @@ def submission_detail(session: Session, submission_id: int, *, races: int = 20) 
     )
     active = next((v.version for v in versions if v.id == sub.active_version_id), None)
     return SubmissionDetail(
-        **_summary(sub, author, active, versions[0].version if versions else None),
+        **_summary(
+            sub,
+            author,
+            active,
+            versions[0].version if versions else None,
+            versions[0].car if versions else None,
+        ),
         description=sub.description,
         rank=submission_rank(session, sub),
         versions=[VersionInfo.model_validate(v) for v in versions],
@@ -438,6 +499,7 @@ def _race_fields(race: Race) -> dict[str, Any]:
         "kind": race.kind,
         "status": race.status,
         "track": race.track,
+        "car": race.car,
         "laps": race.laps,
         "seed": race.seed,
         "n_cars": len(race.entries),

@@ -126,6 +126,7 @@ def race_job(race: Race, settings: Settings) -> RaceJob:
         laps=race.laps,
         seed=race.seed,
         ranked=race.penalties,
+        car=race.car,
     )
 
 

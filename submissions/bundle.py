@@ -26,6 +26,9 @@ manifest key   meaning
 ``env``        optional declared spaces ``{"lidar_rays": int, "k_opponents": int}``, checked
                against the env's
 ``description`` optional, at most 4096 characters
+``car``        optional car preset the policy drives (:data:`arena.cars.CAR_PRESETS`:
+               ``f1tenth``, the default, or ``deepracer``); on the leaderboard a submission
+               races only against submissions of the same car
 =============  ==============================================================================
 
 :func:`open_bundle` checks everything it can *before* writing a byte: the archive's size,
@@ -87,7 +90,8 @@ REQUIRED = (
     "action_mode",
     "env_version",
 )
-OPTIONAL = ("class_name", "env", "description")
+OPTIONAL = ("class_name", "env", "description", "car")
+DEFAULT_CAR = "f1tenth"  # = arena.cars.DEFAULT_CAR (tested equal; this module stays light)
 ZIP_MAGIC = b"PK\x03\x04"
 _CHUNK = 1 << 16
 
@@ -162,6 +166,7 @@ class Manifest:
     env: Mapping[str, int] = field(default_factory=dict)
     description: str = ""
     schema: int = MANIFEST_SCHEMA
+    car: str = DEFAULT_CAR
 
     def __post_init__(self) -> None:
         _check_manifest(self)
@@ -202,6 +207,7 @@ class Manifest:
             class_name=doc.get("class_name", "Policy"),
             env=dict(env),
             description=doc.get("description", ""),
+            car=doc.get("car", DEFAULT_CAR),
         )
 
     def to_dict(self) -> dict[str, Any]:
@@ -222,6 +228,8 @@ class Manifest:
             doc["env"] = dict(self.env)
         if self.description:
             doc["description"] = self.description
+        if self.car != DEFAULT_CAR:
+            doc["car"] = self.car
         return doc
 
 
@@ -282,6 +290,8 @@ def _check_manifest(m: Manifest) -> None:
     _choice(m, "format", FORMATS)
     _choice(m, "obs_mode", OBS_MODES)
     _choice(m, "action_mode", ACTION_MODES)
+    _text(m, "car", 32)
+    _choice(m, "car", car_names())
     entry = _text(m, "entry", MAX_PATH)
     problem = unsafe_path(entry)
     if problem:
@@ -306,6 +316,13 @@ def _check_manifest(m: Manifest) -> None:
                 f"{MANIFEST_NAME}: env.{key} must be an integer in [{lo}, {hi}], "
                 f"not {_short(value)}"
             )
+
+
+def car_names() -> tuple[str, ...]:
+    """The car presets a manifest may declare (:data:`arena.cars.CAR_PRESETS`' names)."""
+    from arena.cars import CAR_PRESETS  # noqa: PLC0415 - no pybullet; keep bundle.py light
+
+    return tuple(CAR_PRESETS)
 
 
 def check_env(manifest: Manifest, env: EnvSpec) -> None:

@@ -43,8 +43,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from submissions.bundle import EnvSpec, open_bundle
-from submissions.errors import SubmissionError
+from submissions.bundle import DEFAULT_CAR, EnvSpec, car_names, open_bundle
+from submissions.errors import BundleError, SubmissionError
 
 if TYPE_CHECKING:
     from agents.policy import Policy
@@ -109,6 +109,10 @@ class RaceJob:
         record_viser: also write the ``.viser`` 3D replay.
         wall_clock_s: the race's wall-clock limit from the job's start, s (None: the
             default, :func:`race_wall_clock_s`).
+        car: the car preset every car drives (:data:`arena.cars.CAR_PRESETS`); None: the
+            one the bundles' manifests declare (they must agree), else ``"f1tenth"``. A
+            bundle that declares another car than the job's is refused.
+        solo: a time trial: one entrant alone is allowed (races take 2 to 8).
     """
 
     job_id: str
@@ -121,14 +125,19 @@ class RaceJob:
     limits: SandboxLimits | None = None
     record_viser: bool = True
     wall_clock_s: float | None = None
+    car: str | None = None
+    solo: bool = False
 
     def __post_init__(self) -> None:
         if not isinstance(self.job_id, str) or not JOB_ID.fullmatch(self.job_id):
             raise SubmissionError(f"job id {self.job_id!r} must match {JOB_ID.pattern}")
-        if not MIN_CARS <= len(self.entrants) <= MAX_CARS:
+        fewest = 1 if self.solo else MIN_CARS
+        if not fewest <= len(self.entrants) <= MAX_CARS:
             raise SubmissionError(
-                f"a race job takes {MIN_CARS} to {MAX_CARS} entrants, not {len(self.entrants)}"
+                f"a race job takes {fewest} to {MAX_CARS} entrants, not {len(self.entrants)}"
             )
+        if self.car is not None and self.car not in car_names():
+            raise SubmissionError(f"unknown car {self.car!r}; one of {', '.join(car_names())}")
         if self.laps < 1:
             raise SubmissionError(f"laps must be at least 1, not {self.laps}")
         if self.wall_clock_s is not None and not self.wall_clock_s > 0:
@@ -176,6 +185,8 @@ class RaceJob:
                 limits=limits,
                 record_viser=bool(doc.get("record_viser", True)),
                 wall_clock_s=None if wall is None else float(wall),
+                car=None if doc.get("car") is None else str(doc["car"]),
+                solo=bool(doc.get("solo", False)),
             )
         except (KeyError, TypeError, ValueError) as err:
             raise SubmissionError(f"malformed race job: {type(err).__name__}: {err}") from None
@@ -283,6 +294,24 @@ def _weakest_mode(modes: list[str]) -> str:
     return mode_label("seccomp" if "seccomp" in modes else modes[0])
 
 
+def job_car(job: RaceJob, declared: Sequence[str]) -> str:
+    """The car preset a job races: ``job.car``, else the one its bundles declare
+    (``declared``, one per bundle), else ``"f1tenth"``.
+
+    Raises:
+        BundleError: a bundle declares another car than the job's, or the bundles disagree.
+    """
+    cars = sorted(set(declared))
+    if job.car is not None:
+        if any(c != job.car for c in cars):
+            other = next(c for c in cars if c != job.car)
+            raise BundleError(f"a bundle drives the {other!r} car; this race runs {job.car!r}")
+        return job.car
+    if len(cars) > 1:
+        raise BundleError(f"the bundles declare different cars ({', '.join(cars)})")
+    return cars[0] if cars else DEFAULT_CAR
+
+
 def progress_path(job: RaceJob) -> Path:
     """The file a running job keeps its latest step number in (text), rewritten at most
     every :data:`PROGRESS_EVERY_S` s and removed when the job ends: a leaderboard worker
@@ -368,6 +397,7 @@ def _run_job(
             _write_progress(progress_file, step)
 
     logs: dict[str, dict[str, str]] = {}
+    declared: list[str] = []  # the bundles' cars
     try:
         for entrant in job.entrants:
             if entrant.is_baseline:
@@ -377,12 +407,14 @@ def _run_job(
                 if entrant.source not in bundles:
                     dest = tmp / f"bundle_{len(bundles)}"
                     bundles[entrant.source] = open_bundle(Path(entrant.source), dest, env=env)
+                declared.append(bundles[entrant.source].manifest.car)
                 policy = _sandboxed(bundles[entrant.source], job, env, entrant.name, pool)
                 if job.wall_clock_s is not None:
                     policy.race_deadline = started + job.wall_clock_s
                 agents[id(policy)] = f"car_{len(policies)}"
                 sandboxed.append(policy)
             policies.append(policy)
+        car = job_car(job, declared)
         result, replay = run_race(
             policies,
             track=job.track,
@@ -395,6 +427,7 @@ def _run_job(
                 "lidar_rays": env.lidar_rays,
                 "k_opponents": env.k_opponents,
                 "control_hz": CONTROL_HZ,
+                "car": car,
             },
         )
         logs = {
@@ -407,6 +440,7 @@ def _run_job(
         progress_file.unlink(missing_ok=True)
     assert replay is not None  # record=True
     doc = result.to_dict()
+    doc["car"] = car
     _cap_details(doc, replay.events)
     replay.save(job.replay_path)
     viser_path = None
@@ -431,6 +465,7 @@ __all__ = [
     "Entrant",
     "JobResult",
     "RaceJob",
+    "job_car",
     "progress_path",
     "race_wall_clock_s",
     "run_race_job",

@@ -3,8 +3,9 @@
 ============================  ============================================  =====================
 page                          shows                                         JSON twin (``/api``)
 ============================  ============================================  =====================
-``/``                         leaderboard: rank, name, author, ordinal, μ,  ``/leaderboard``
-                              σ, races, win rate (paginated); ``?q=`` search
+``/``                         leaderboard: rank, name, author, car,         ``/leaderboard``
+                              ordinal, μ, σ, races, win rate (paginated);
+                              ``?q=`` search, ``?car=`` one car class
 ``/submissions/{id}``         versions with validation races and reasons,   ``/submissions/{id}``
                               every race (position, Δμ, Δσ, penalties,
                               best lap), best laps by track, head to head,
@@ -168,23 +169,38 @@ def leaderboard_page(
     pages: PageDep,
     viewer: ViewerDep,
     q: Annotated[str, Query(max_length=64, description="name or author contains")] = "",
+    car: Annotated[str, Query(max_length=16, description="one car class")] = "",
 ) -> HTMLResponse:
-    """The leaderboard: active submissions by ordinal, best first; ``q`` searches it."""
+    """The leaderboard: active submissions by ordinal, best first; ``q`` searches it, ``car``
+    keeps one car class's ladder."""
     q = q.strip()
+    car_class = queries.check_car(car)
     page = queries.leaderboard(
         session,
         page=1 if q else pages.page,
         per_page=queries.MAX_PER_PAGE if q else pages.per_page,
         provisional_races=settings.provisional_races,
         max_age_s=settings.cache_max_age_s,
+        car=car_class,
     )
     rows = page.items
     if q:  # the snapshot is cached; filtering it costs nothing
         needle = q.lower()
         rows = [r for r in rows if needle in r.name.lower() or needle in r.author.lower()]
-    context = {"nav": "leaderboard", "rows": rows, "q": q, "api_url": "/api/leaderboard"}
+    query = urlencode({"car": car_class} if car_class else {})
+    context = {
+        "nav": "leaderboard",
+        "rows": rows,
+        "q": q,
+        "car": car_class or "",
+        "cars": queries.car_classes(),
+        "api_url": "/api/leaderboard" + (f"?{query}" if query else ""),
+    }
+    base = "/" + (f"?{query}" if query else "")
     pager = (
-        {"pages": 1, "page": 1, "total": len(rows), "base_url": "/?"} if q else _pager(page, "/")
+        {"pages": 1, "page": 1, "total": len(rows), "base_url": base + ("&" if query else "?")}
+        if q
+        else _pager(page, base)
     )
     return _render(request, "leaderboard.html", context | pager, viewer)
 
