@@ -14,6 +14,7 @@ instead of rays × segments — and each ray keeps its nearest hit (a scatter-mi
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -54,9 +55,40 @@ class Lidar:
         self.first = -0.5 * fov
         self.angles: FloatArray = self.first + self.step * np.arange(n_rays, dtype=np.float64)
         self.dirs: FloatArray = np.stack([np.cos(self.angles), np.sin(self.angles)], axis=1)
+        self._reach = (max_range * 1.5 + 1.0) ** 2  # m²: segments beyond cannot be hit
+        self._shifts = np.array([0.0, -2 * math.pi]) - self.first  # rad, as the first ray
         spacing = float(np.mean(np.linalg.norm(np.diff(walls.left, axis=0), axis=1)))
         self.half_window = math.ceil(1.5 * max_range / spacing) + 1
-        self._points: FloatArray = np.vstack([walls.left, walls.right])  # (2W, 2) m
+        # Per wall point k, both walls' segments k -> k+1 as [x0, y0, x1, y1] (left, right):
+        # one gather per scan fetches every windowed segment, ends included.
+        left, right = walls.left, walls.right
+        self._table: FloatArray = np.hstack(
+            [left, np.roll(left, -1, axis=0), right, np.roll(right, -1, axis=0)]
+        )  # (W, 8) m
+        # Ray directions tiled over cars (flat index car · n_rays + ray), grown on demand.
+        self._dir_x: FloatArray = self.dirs[:, 0].copy()
+        self._dir_y: FloatArray = self.dirs[:, 1].copy()
+        self._layouts: dict[tuple[int, int], _Layout] = {}
+
+    def _layout(self, n: int, n_edges: int) -> _Layout:
+        """Constant index arrays for ``n`` scanners and ``n_edges`` car edges (built once)."""
+        key = (n, n_edges)
+        if key not in self._layouts:
+            n_wall = 2 * (2 * self.half_window + 1)
+            n_seg = n_wall + n_edges
+            usable = np.ones((n, n_seg), dtype=bool)
+            if n_edges:  # a car's own four edges are not seen by its lidar
+                usable[:, n_wall:] = ~np.repeat(np.eye(n, dtype=bool), 4, axis=1)
+            # (car, segment, shift) flattened: segment and car of each, and the car's first
+            # flat output index.
+            seg_of = np.repeat(np.arange(n * n_seg), 2)
+            if len(self._dir_x) < n * self.n_rays:
+                self._dir_x = np.tile(self.dirs[:, 0], n)
+                self._dir_y = np.tile(self.dirs[:, 1], n)
+            self._layouts[key] = _Layout(
+                n_seg=n_seg, usable=usable, seg_of=seg_of, base_of=(seg_of // n_seg) * self.n_rays
+            )
+        return self._layouts[key]
 
     def scan(
         self,
@@ -73,37 +105,29 @@ class Lidar:
                 car's own rectangle is skipped. None: walls only.
         """
         n = len(poses)
-        w = self.walls.n_points
         idx = self.walls.window(segment, self.half_window)  # (n, S)
-        nxt = (idx + 1) % w
-        # Segment starts and ends (n, 2S, 2), left wall then right: one gather each.
-        starts = self._points[np.concatenate([idx, idx + w], axis=1)]
-        ends = self._points[np.concatenate([nxt, nxt + w], axis=1)]
-        skip = np.zeros(starts.shape[:2], dtype=bool)
+        walls = self._table[idx].reshape(n, -1, 4)  # (n, 2S, 4): [x0, y0, x1, y1]
         if car_corners is not None and len(car_corners) > 1:
-            # Every car's 4 edges, shared by all scanners.
-            shape = (n, 4 * len(car_corners), 2)
-            edge_a = np.broadcast_to(car_corners.reshape(1, -1, 2), shape)
-            edge_b = np.broadcast_to(car_corners[:, [1, 2, 3, 0]].reshape(1, -1, 2), shape)
-            starts = np.concatenate([starts, edge_a], axis=1)
-            ends = np.concatenate([ends, edge_b], axis=1)
-            skip = np.concatenate([skip, np.repeat(np.eye(n, dtype=bool), 4, axis=1)], axis=1)
-        return self._cast(poses, (starts[..., 0], starts[..., 1], ends[..., 0], ends[..., 1]), skip)
+            # Every car's 4 edges, shared by all scanners (the order of the segments does not
+            # matter: each ray keeps its nearest hit).
+            edges = np.concatenate([car_corners, car_corners[:, [1, 2, 3, 0]]], axis=-1)
+            layout = self._layout(n, 4 * len(car_corners))
+            seg = np.empty((n, layout.n_seg, 4))
+            seg[:, : walls.shape[1]] = walls
+            seg[:, walls.shape[1] :] = edges.reshape(-1, 4)
+        else:
+            layout, seg = self._layout(n, 0), walls
+        return self._cast(poses, seg, layout)
 
-    def _cast(
-        self,
-        poses: FloatArray,
-        seg: tuple[FloatArray, FloatArray, FloatArray, FloatArray],
-        skip: NDArray[np.bool_],
-    ) -> FloatArray:
-        """Nearest hit per ray; ``seg`` = start x, start y, end x, end y, each (n, S) m."""
-        n, n_seg = skip.shape
+    def _cast(self, poses: FloatArray, seg: FloatArray, layout: _Layout) -> FloatArray:
+        """Nearest hit per ray; ``seg`` (n, S, 4) m = start x, start y, end x, end y."""
+        n = len(poses)
         x, y = poses[:, 0:1], poses[:, 1:2]
         cos, sin = np.cos(poses[:, 2:3]), np.sin(poses[:, 2:3])
         # Segment ends in each car's frame.
-        dx, dy = seg[0] - x, seg[1] - y
+        dx, dy = seg[..., 0] - x, seg[..., 1] - y
         ax, ay = cos * dx + sin * dy, cos * dy - sin * dx
-        dx, dy = seg[2] - x, seg[3] - y
+        dx, dy = seg[..., 2] - x, seg[..., 3] - y
         bx, by = cos * dx + sin * dy, cos * dy - sin * dx
         span = np.arctan2(ax * by - ay * bx, ax * bx + ay * by)  # signed angle a → b
         # Interval of angles the segment covers, rotated to start at or after the first ray;
@@ -111,31 +135,48 @@ class Lidar:
         lo = np.arctan2(ay, ax) + np.minimum(span, 0.0)
         lo = self.first + np.mod(lo - self.first, 2 * math.pi)
         hi = lo + np.abs(span)
-        reach = (self.max_range * 1.5 + 1.0) ** 2
-        usable = ~skip & (np.minimum(ax * ax + ay * ay, bx * bx + by * by) < reach)
-        shifts = np.array([0.0, -2 * math.pi]) - self.first
-        k_lo = np.ceil((lo[..., None] + shifts) / self.step - 1e-9)
-        k_hi = np.minimum(np.floor((hi[..., None] + shifts) / self.step + 1e-9), self.n_rays - 1)
-        k_lo = np.maximum(k_lo, 0).astype(np.int64)
-        counts = np.maximum(k_hi.astype(np.int64) - k_lo + 1, 0)
-        counts = (counts * usable[..., None]).ravel()
+        usable = layout.usable & (np.minimum(ax * ax + ay * ay, bx * bx + by * by) < self._reach)
+        k_lo = np.ceil((lo[..., None] + self._shifts) / self.step - 1e-9)
+        k_hi = np.minimum(
+            np.floor((hi[..., None] + self._shifts) / self.step + 1e-9), self.n_rays - 1
+        )
+        k_lo = np.maximum(k_lo, 0).astype(np.int64).ravel()
+        counts = np.maximum(k_hi.astype(np.int64).ravel() - k_lo + 1, 0)
+        counts *= np.repeat(usable.ravel(), 2)
         out = np.full(n * self.n_rays, self.max_range)
-        total = int(counts.sum())
+        ends = np.cumsum(counts)
+        total = int(ends[-1])
         if total == 0:
             return out.reshape(n, self.n_rays)
-        owner = np.repeat(np.arange(counts.size), counts)  # flat (car, seg, shift) of each pair
-        offset = np.arange(total) - np.repeat(np.cumsum(counts) - counts, counts)
-        ray = k_lo.ravel()[owner] + offset
-        pair_seg = owner // 2  # flat (car, seg)
-        car = pair_seg // n_seg
+        # Every (segment, ray) pair as a flat output index car · n_rays + ray, and its segment.
+        flat = np.repeat(layout.base_of + k_lo - (ends - counts), counts) + np.arange(total)
+        pair_seg = np.repeat(layout.seg_of, counts)
         pax, pay = ax.ravel()[pair_seg], ay.ravel()[pair_seg]
         pex, pey = bx.ravel()[pair_seg] - pax, by.ravel()[pair_seg] - pay
-        ux, uy = self.dirs[ray, 0], self.dirs[ray, 1]
+        ux, uy = self._dir_x[flat], self._dir_y[flat]
         denom = ux * pey - uy * pex
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = (pax * pey - pay * pex) / denom
-            w = (pax * uy - pay * ux) / denom
-        ok = (np.abs(denom) > 1e-12) & (t > 0) & (w >= -1e-9) & (w <= 1 + 1e-9)
-        dist = np.where(ok, t, self.max_range)
-        np.minimum.at(out, car * self.n_rays + ray, dist)
-        return np.minimum(out, self.max_range).reshape(n, self.n_rays)
+        hit = np.abs(denom) > 1e-12
+        denom = np.where(hit, denom, 1.0)  # the pairs it replaces are rejected: no 0 / 0
+        t = (pax * pey - pay * pex) / denom
+        w = (pax * uy - pay * ux) / denom
+        hit &= (t > 0) & (w >= -1e-9) & (w <= 1 + 1e-9)
+        # Each ray keeps its nearest hit (a scatter-min); misses leave max_range.
+        np.minimum.at(out, flat[hit], t[hit])
+        return out.reshape(n, self.n_rays)
+
+
+@dataclass(frozen=True)
+class _Layout:
+    """Index arrays of one scan shape (see :meth:`Lidar._layout`).
+
+    Attributes:
+        n_seg: segments per scanner (windowed walls, then every car's edges).
+        usable: (n, n_seg) False for a scanner's own edges.
+        seg_of: (n · n_seg · 2,) flat (car, segment) of each (car, segment, shift).
+        base_of: (n · n_seg · 2,) flat output index of ray 0 of that car.
+    """
+
+    n_seg: int
+    usable: NDArray[np.bool_]
+    seg_of: IntArray
+    base_of: IntArray

@@ -446,9 +446,12 @@ class Track:
     def _locate(self, s: ArrayLike) -> tuple[IntArray, FloatArray]:
         """Segment index and fraction ``t`` in [0, 1) for progress values."""
         sw = self.wrap_s(s)
-        i = np.clip(np.searchsorted(self.s, sw, side="right") - 1, 0, self.n_points - 1)
+        # minimum/maximum: np.clip's result on integers, without its overhead (a hot path).
+        i = np.minimum(
+            np.maximum(np.searchsorted(self.s, sw, side="right") - 1, 0), self.n_points - 1
+        )
         t = (sw - self.s[i]) / self.segment_lengths[i]
-        return i.astype(np.int64), t
+        return i.astype(np.int64, copy=False), t
 
     def widths_at(self, s: ArrayLike) -> tuple[FloatArray, FloatArray]:
         """Left and right half-widths at progress ``s`` (linear between points), m."""
@@ -484,19 +487,18 @@ class Track:
         return base + f[:, 1:2] * normal
 
     @cached_property
-    def _frame(self) -> tuple[FloatArray, ...]:
-        """Per-segment constants of the projection quadratic, each (N,), structure of arrays.
+    def _frame_table(self) -> FloatArray:
+        """Per-segment constants of the projection quadratic, (10, N): one gather fetches all
+        of a candidate's.
 
-        ``cx, cy`` segment start; ``nx, ny`` start normal; ``ex, ey`` segment vector; ``dnx,
-        dny`` normal change along the segment; ``qa = -e × dn``; ``en = e × n0``.
+        Rows: ``cx, cy`` segment start; ``nx, ny`` start normal; ``ex, ey`` segment vector;
+        ``dnx, dny`` normal change along the segment; ``qa = -e × dn``; ``en = e × n0``.
         """
         c, nrm = self.centre, self.normals
         e = np.roll(c, -1, axis=0) - c
         dn = np.roll(nrm, -1, axis=0) - nrm
         cols = (c[:, 0], c[:, 1], nrm[:, 0], nrm[:, 1], e[:, 0], e[:, 1], dn[:, 0], dn[:, 1])
-        qa = -_cross(e, dn)
-        en = _cross(e, nrm)
-        return (*(np.ascontiguousarray(a) for a in cols), qa, en)
+        return np.stack([*cols, -_cross(e, dn), _cross(e, nrm)])
 
     def project(self, points: ArrayLike) -> Projection:
         """Project (M, 2) points [x m, y m] onto the centre line.
@@ -508,14 +510,18 @@ class Track:
         """
         p = _as_points(points)
         m, n = len(p), self.n_points
-        seg = np.empty(m, dtype=np.int64)
-        tb = np.empty(m)
-        db = np.empty(m)
-        for lo in range(0, m, _PROJECT_BLOCK):
-            hi = min(lo + _PROJECT_BLOCK, m)
-            seg[lo:hi], tb[lo:hi], db[lo:hi] = self._project_block(p[lo:hi])
+        if m <= _PROJECT_BLOCK:  # one block (the env's few cars every step): no copies
+            seg, tb, db = self._project_block(p)
+        else:
+            seg = np.empty(m, dtype=np.int64)
+            tb = np.empty(m)
+            db = np.empty(m)
+            for lo in range(0, m, _PROJECT_BLOCK):
+                hi = min(lo + _PROJECT_BLOCK, m)
+                seg[lo:hi], tb[lo:hi], db[lo:hi] = self._project_block(p[lo:hi])
         s = self.wrap_s(self.s[seg] + tb * self.segment_lengths[seg])
-        tan = self.tangents[seg] + tb[:, None] * (self.tangents[(seg + 1) % n] - self.tangents[seg])
+        tan0 = self.tangents[seg]
+        tan = tan0 + tb[:, None] * (self.tangents[(seg + 1) % n] - tan0)
         heading = np.arctan2(tan[:, 1], tan[:, 0])
         return Projection(s=s, d=db, heading=heading, segment=seg)
 
@@ -530,7 +536,7 @@ class Track:
         _, nearest = self._tree.query(p, k=k)
         nearest = np.asarray(nearest).reshape(len(p), k)
         cand = np.concatenate([nearest, nearest - 1], axis=1) % n  # (M, 2k) segment indices
-        cx, cy, nx, ny, ex, ey, dnx, dny, qa, en = (a[cand] for a in self._frame)
+        cx, cy, nx, ny, ex, ey, dnx, dny, qa, en = self._frame_table[:, cand]
         qx = p[:, :1] - cx  # q = p - c0, (M, C)
         qy = p[:, 1:] - cy
         c = qx * ny
@@ -545,8 +551,8 @@ class Track:
         np.negative(root, out=root, where=b < 0)
         denom = np.negative(b, out=b)
         denom -= root
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = np.where(np.abs(denom) > 1e-300, 2.0 * c / denom, 0.0)
+        # 0 where the denominator vanishes (computed only elsewhere: no 0 / 0 warnings).
+        t = np.divide(2.0 * c, denom, out=np.zeros_like(c), where=np.abs(denom) > 1e-300)
         ntx = t * dnx
         ntx += nx  # nt = n0 + t dn
         nty = t * dny
@@ -561,12 +567,13 @@ class Track:
         d /= ntx
         valid = (disc >= 0) & (t >= -1e-9) & (t <= 1 + 1e-9)
         cost = np.where(valid, np.abs(d), np.inf)
-        best = np.argmin(cost, axis=1)[:, None]
-        seg = np.take_along_axis(cand, best, axis=1)[:, 0]
-        tb = np.clip(np.take_along_axis(t, best, axis=1)[:, 0], 0.0, 1.0)
-        db = np.take_along_axis(d, best, axis=1)[:, 0]
+        rows = np.arange(len(p))
+        best = np.argmin(cost, axis=1)
+        seg = cand[rows, best]
+        tb = np.minimum(np.maximum(t[rows, best], 0.0), 1.0)  # np.clip's values, cheaper
+        db = d[rows, best]
         # Far off the road on the inside of a bend no frame solution exists: use the vertex.
-        none = ~np.isfinite(np.take_along_axis(cost, best, axis=1)[:, 0])
+        none = ~np.isfinite(cost[rows, best])
         if np.any(none):
             v = nearest[none, 0]
             seg[none] = v
