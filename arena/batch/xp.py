@@ -47,6 +47,7 @@ class NumpyOps:
     maximum: Callable[..., Array]
 
     def __init__(self, dtype: str = "float64") -> None:
+        self._init_args: tuple[str, ...] = (dtype,)
         self.float: Any = np.dtype(dtype)
         self.int: Any = np.dtype(np.int64)
         self.bool: Any = np.dtype(np.bool_)
@@ -56,6 +57,11 @@ class NumpyOps:
         for fn in ("sin", "cos", "tanh", "sqrt", "abs", "floor", "minimum", "maximum", "hypot"):
             setattr(self, fn, getattr(np, fn))
         self.isnan = np.isnan
+
+    def __reduce__(self) -> tuple[type[NumpyOps], tuple[str, ...]]:
+        """Pickle (and deep-copy) as the constructor call: the library module itself cannot be
+        pickled, and a copied env (SuperSuit's vector envs, subprocesses) needs its ops."""
+        return (type(self), self._init_args)
 
     # ---- creation ----------------------------------------------------------------------------
     def asarray(self, x: Any, dtype: Any = None) -> Array:
@@ -218,6 +224,7 @@ class TorchOps(NumpyOps):
             ) from err
         if device.startswith("cuda") and not torch.cuda.is_available():
             raise DeviceError(f"device {device!r} asked for, but torch sees no CUDA GPU")
+        self._init_args = (device, dtype)
         self.torch: Any = torch
         self.device = device
         self.float = getattr(torch, dtype)
