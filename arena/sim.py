@@ -261,6 +261,8 @@ class Simulator:
         self.scales = CarScales.nominal(n_cars)
         self.steering = np.zeros(n_cars)
         self.substeps_done = 0
+        # Per car: (steering rad, cos and sin of the left and right front-wheel angles).
+        self._wheel_angles: list[tuple[float, ...]] = [(0.0, 1.0, 0.0, 1.0, 0.0)] * n_cars
         self._build_world()
 
     # ---- world construction ---------------------------------------------------------------
@@ -480,9 +482,9 @@ class Simulator:
 
     def _read(self) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Positions (n, 3), quaternions (n, 4) and velocities (n, 6) [lin, ang] of all cars."""
-        c = self.client
-        poses = [pb.getBasePositionAndOrientation(body, physicsClientId=c) for body in self.cars]
-        vels = [pb.getBaseVelocity(body, physicsClientId=c) for body in self.cars]
+        c, get_pose, get_vel = self.client, pb.getBasePositionAndOrientation, pb.getBaseVelocity
+        poses = [get_pose(body, c) for body in self.cars]
+        vels = [get_vel(body, c) for body in self.cars]
         # One array from nested tuples is much cheaper than filling rows one by one.
         pos = np.array([p_ for p_, _ in poses], dtype=np.float64)
         quat = np.array([q_ for _, q_ in poses], dtype=np.float64)
@@ -528,54 +530,86 @@ class Simulator:
             _clip(steer_cmd, -1.0, 1.0) * p.max_steer * s.steer_gain + s.steer_offset,
             -p.max_steer,
             p.max_steer,
-        )
-        throttle = _clip(throttle, -1.0, 1.0)
+        ).tolist()
+        tyres = self._tyre_constants(_clip(throttle, -1.0, 1.0).tolist())
         wall = np.zeros(self.n_cars, dtype=bool)
         touching = np.zeros((self.n_cars, self.n_cars), dtype=bool)
-        max_delta = p.steer_rate * self.dt
+        max_delta, low = p.steer_rate * self.dt, -p.steer_rate * self.dt
+        # The servo in Python floats: the numbers numpy's clip gives, without its overhead.
+        steering = self.steering.tolist()
+        step, client = pb.stepSimulation, self.client
         for _ in range(self.substeps):
-            self.steering += _clip(target - self.steering, -max_delta, max_delta)
-            self._apply_tyre_forces(throttle)
-            pb.stepSimulation(physicsClientId=self.client)
+            steering = [
+                now + min(max(goal - now, low), max_delta)
+                for now, goal in zip(steering, target, strict=True)
+            ]
+            self._apply_tyre_forces(steering, tyres)
+            step(client)
             self.substeps_done += 1
             self._collect_contacts(wall, touching)
+        self.steering = np.array(steering, dtype=np.float64)
         return self._observe(wall, touching)
 
-    def _apply_tyre_forces(self, throttle: FloatArray) -> None:
+    def _tyre_constants(self, throttles: list[float]) -> list[tuple[Any, ...]]:
+        """Per car, what its tyre forces need that stays fixed over one control step:
+        (body, throttle, motor gain, mass kg, lateral gain N s/m, friction limit N)."""
+        p, sc = self.params, self.scales
+        gain = p.tyre_gain / self.dt
+        out = []
+        for body, throttle, mass_scale, motor, grip in zip(
+            self.cars,
+            throttles,
+            sc.mass.tolist(),
+            sc.motor.tolist(),
+            sc.friction.tolist(),
+            strict=True,
+        ):
+            mass = p.mass * mass_scale
+            limit = 0.25 * p.friction * grip * mass * GRAVITY
+            out.append((body, throttle, motor, mass, -gain * (0.25 * mass), limit))
+        return out
+
+    def _apply_tyre_forces(self, steering: list[float], tyres: list[tuple[Any, ...]]) -> None:
         """Compute and apply each car's tyre forces for one substep.
 
         Scalar math per car, inside the loop that already calls pybullet per car: for up to
         16 cars that is several times cheaper than numpy on 4-element arrays. The four wheels
         are written out (the rear ones do not steer: cos 0 = 1 and sin 0 = 0 drop out
         exactly), in the same order of operations as one loop over the wheels would take.
+        pybullet's arguments go by position (keywords cost a parse per call).
+
+        Args:
+            steering: (n,) road-wheel angles, rad, this substep.
+            tyres: per car, from :meth:`_tyre_constants`.
         """
-        p, sc, c, dt = self.params, self.scales, self.client, self.dt
+        p, c = self.params, self.client
         wheelbase, half = p.wheelbase, 0.5 * p.track_width
         lf = lr = 0.5 * wheelbase
-        gain = p.tyre_gain / dt
-        # Python floats: arithmetic on numpy scalars is several times slower (same results).
-        steering, throttles = self.steering.tolist(), throttle.tolist()
-        mass_scale, motor, grip = sc.mass.tolist(), sc.motor.tolist(), sc.friction.tolist()
         get_pose, get_vel = pb.getBasePositionAndOrientation, pb.getBaseVelocity
         force, torque_of, frame = pb.applyExternalForce, pb.applyExternalTorque, pb.WORLD_FRAME
         cos, sin, hypot, atan2 = math.cos, math.sin, math.hypot, math.atan2
-        for i, body in enumerate(self.cars):
-            pos, (qx, qy, qz, qw) = get_pose(body, physicsClientId=c)
-            (vxw, vyw, _), (_, _, r) = get_vel(body, physicsClientId=c)
+        wheels = self._wheel_angles
+        for i, (body, throttle, motor, mass, k_lat, limit) in enumerate(tyres):
+            pos, (qx, qy, qz, qw) = get_pose(body, c)
+            (vxw, vyw, _), (_, _, r) = get_vel(body, c)
             yaw = atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
             cy, sy = cos(yaw), sin(yaw)
             vx = cy * vxw + sy * vyw
             vy = -sy * vxw + cy * vyw
-            d_left, d_right = ackermann_angles(steering[i], wheelbase, p.track_width)
-            mass = p.mass * mass_scale[i]
-            f_drive = 0.25 * drive_force(throttles[i], vx, p, motor[i], mass)
-            k_lat = -gain * (0.25 * mass)
-            limit = 0.25 * p.friction * grip[i] * mass * GRAVITY
+            steer = steering[i]
+            cached = wheels[i]
+            # The servo holds its angle once there: the same angle gives the same wheels
+            # (compared bit for bit, so -0.0 and 0.0 are not mixed up).
+            if cached[0] != steer or math.copysign(1.0, cached[0]) != math.copysign(1.0, steer):
+                d_left, d_right = ackermann_angles(steer, wheelbase, p.track_width)
+                cached = (steer, cos(d_left), sin(d_left), cos(d_right), sin(d_right))
+                wheels[i] = cached
+            _, cd_left, sd_left, cd_right, sd_right = cached
+            f_drive = 0.25 * drive_force(throttle, vx, p, motor, mass)
             # Front wheels (steered), then rear wheels: ux = vx − r·wy, uy = vy + r·wx.
             fx_b = fy_b = torque = 0.0
-            for wy, delta in ((half, d_left), (-half, d_right)):
+            for wy, cd, sd in ((half, cd_left, sd_left), (-half, cd_right, sd_right)):
                 ux, uy = vx - r * wy, vy + r * lf
-                cd, sd = cos(delta), sin(delta)
                 f_lat = k_lat * (-sd * ux + cd * uy)
                 f_long = f_drive
                 norm = hypot(f_long, f_lat)
@@ -597,11 +631,8 @@ class Simulator:
                 fx_b += f_long
                 fy_b += f_lat
                 torque += -lr * f_lat - wy * f_long
-            force(
-                body, -1, (cy * fx_b - sy * fy_b, sy * fx_b + cy * fy_b, 0.0), pos, frame,
-                physicsClientId=c,
-            )  # fmt: skip
-            torque_of(body, -1, (0.0, 0.0, torque), frame, physicsClientId=c)
+            force(body, -1, (cy * fx_b - sy * fy_b, sy * fx_b + cy * fy_b, 0.0), pos, frame, c)
+            torque_of(body, -1, (0.0, 0.0, torque), frame, c)
 
     def _collect_contacts(self, wall: BoolArray, touching: BoolArray) -> None:
         """OR this substep's car–wall and car–car contacts into the given arrays."""
