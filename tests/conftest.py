@@ -10,7 +10,8 @@ a green run would hide that the sandbox or the database path was never exercised
 * **Otherwise** skips stay skips, and the end of the run lists each one under a loud banner.
 * **Always**: a line "real components: ..." counts the tests that passed with each component,
   found from the fixtures and parameters a test uses (``COMPONENT_FIXTURES``,
-  ``COMPONENT_PARAMS``) or an explicit ``@pytest.mark.component("name")``.
+  ``COMPONENT_PARAMS``) or an explicit ``@pytest.mark.component("name")``; a component whose
+  tests all skipped or failed is listed with 0.
 """
 
 from __future__ import annotations
@@ -92,11 +93,13 @@ class _Tally:
 
     def __init__(self) -> None:
         self.passed: Counter[str] = Counter()
+        self.seen: set[str] = set()  # components of every test reported, whatever its outcome
         self.skipped: list[tuple[str, str]] = []
 
     @pytest.hookimpl
     def pytest_runtest_logreport(self, report: pytest.TestReport) -> None:
         components = [v for k, v in report.user_properties if k == "component"]
+        self.seen.update(components)
         if report.when == "call" and report.passed:
             self.passed.update(components)
         if report.skipped:
@@ -110,7 +113,9 @@ class _Tally:
             tr.write_sep("!", f"{len(self.skipped)} TESTS DID NOT RUN (CI would fail them)")
             for nodeid, reason in self.skipped:
                 tr.write_line(f"NOT RUN {nodeid}: {reason}", yellow=True, bold=True)
-        counts = " · ".join(f"{name} {n}" for name, n in sorted(self.passed.items()))
+        # A component whose tests all skipped or failed shows as 0: the line says what did
+        # not really run, not only what did.
+        counts = " · ".join(f"{name} {self.passed[name]}" for name in sorted(self.seen))
         mode = "strict" if strict_mode() else "lenient (skips allowed)"
         tr.write_line(f"real components ({mode}): {counts or 'none ran'}")
 

@@ -75,3 +75,15 @@ def test_laps_are_integers_starting_at_minus_one(track: Track) -> None:
     counter = LapCounter(track, [-0.5, -1.5])
     assert counter.laps.dtype == np.int64
     assert counter.laps.tolist() == [-1, -1]
+
+
+def test_a_gate_reached_by_a_cut_is_not_counted_when_the_car_drives_on(track: Track) -> None:
+    # The cut lands exactly on the gate (a jump over the limit: not counted). The next, legal
+    # step starts *on* the gate: the gate is not ahead of the car (0 m), so it is still not
+    # crossed; counting it would let a car cut to a gate and collect it on its next step.
+    gate_s = float(track.checkpoint_s()[3])
+    counter = _counter_before_gate(track, 3, gap=5.0)  # 5 m > the 3 m jump limit
+    counter.update([gate_s])
+    assert counter.next_gate[0] == 3
+    counter.update([gate_s + 0.5])
+    assert counter.next_gate[0] == 3
