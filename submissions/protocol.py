@@ -1,7 +1,8 @@
-"""The policy worker protocol: length-prefixed raw-array frames over pipes, never pickle.
+"""The policy worker protocol: raw-array frames, never pickle.
 
-The race and a sandboxed policy exchange *frames*. Each frame is a fixed 16-byte header, the
-array's shape, then the array's raw little-endian bytes:
+The race and a sandboxed policy exchange *frames*, one at a time each way, through the
+shared-memory channel of :mod:`submissions.channel`. Each frame is a fixed 16-byte header,
+the array's shape, then the array's raw little-endian bytes:
 
 =======  ========  ==============================================================
 offset   type      field
@@ -19,29 +20,28 @@ offset   type      field
 
 Text (error messages, the worker's hello) travels as a uint8 array of UTF-8 (JSON where it
 is structured). Every field is checked before a byte of payload is trusted: magic, kind,
-dtype, ndim, ``payload == prod(shape) × itemsize`` and the size cap. Nothing is unpickled,
-so a hostile peer can send at most a wrong array, which the receiver then validates.
+dtype, ndim, ``payload == prod(shape) × itemsize`` and the size cap; a reader decodes only
+its own copy of the bytes (:func:`frame_length` on a copy of the head, then
+:func:`decode_frame` on a copy of the whole frame), so a peer scribbling in the shared
+memory meanwhile can at most produce a wrong or refused frame. Nothing is unpickled, so a
+hostile peer can send at most a wrong array, which the receiver then validates.
 
 A session, host → worker: ``RESET`` (int64 ``[seed]``, or empty for no seed) is answered by
 ``OK``; ``ACT`` (the observation) by ``ACTION``; ``CLOSE`` ends it. The worker opens with
 ``READY`` (JSON: name, format; sequence 0) once the policy has loaded, and answers anything
 with ``ERROR`` (its exception, as text) or ``INVALID`` (an action it could not encode as
 numbers). The host numbers its requests 1, 2, 3, … and has at most one outstanding; each
-reply carries the number of the request it answers. The host counts only the reply to its
-current request: any other (sent ahead, stale, unprompted) is a protocol violation and
-retires the policy as ``invalid`` (:mod:`submissions.remote`); it never waits for one.
+reply carries the number of the request it answers, and the host counts only the reply to
+its current request (:mod:`submissions.remote`).
 """
 
 from __future__ import annotations
 
 import enum
-import errno
 import json
 import math
-import os
 import struct
-from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -55,6 +55,7 @@ MAX_NDIM = 8
 MAX_FRAME = 16 << 20  # bytes of payload: far above any observation, well below host memory
 MAX_TEXT = 4096  # bytes of an error message kept (sent, and kept by the host: dnf_detail)
 SEQ_MODULO = 1 << 16
+HEAD_MAX = HEADER.size + DIM.size * MAX_NDIM  # the longest header with its shape, bytes
 
 # dtype code → numpy dtype (little-endian). A closed list: anything else is refused.
 DTYPES: dict[int, np.dtype[Any]] = {
@@ -65,7 +66,9 @@ DTYPES: dict[int, np.dtype[Any]] = {
     5: np.dtype("u1"),
     6: np.dtype("?"),
 }
-_CODES = {dt: code for code, dt in DTYPES.items()}
+_CODES = {dt.str: code for code, dt in DTYPES.items()}  # keyed by "<f4", "|u1"…: fast
+_SHAPES = [struct.Struct(f"<{n}Q") for n in range(MAX_NDIM + 1)]  # a shape of n axes
+_EMPTY = np.zeros(0, np.uint8)
 
 
 class Kind(enum.IntEnum):
@@ -81,6 +84,9 @@ class Kind(enum.IntEnum):
     CLOSE = 8
 
 
+_KINDS = {int(kind): kind for kind in Kind}
+
+
 class ProtocolError(SubmissionError):
     """A frame broke the protocol: bad magic, unknown kind or dtype, too large, truncated."""
 
@@ -94,9 +100,11 @@ def cap_text(text: str, limit: int = MAX_TEXT) -> str:
     return data[: max(0, limit - len(marker))].decode("utf-8", "ignore") + marker.decode()
 
 
-@dataclass(frozen=True)
-class Frame:
-    """One message: its kind, its array (``shape`` and ``dtype`` from the header), its number."""
+class Frame(NamedTuple):
+    """One message: its kind, its array (``shape`` and ``dtype`` from the header), its number.
+
+    (A named tuple: cheap to make, on every step's path.)
+    """
 
     kind: Kind
     array: NDArray[Any]
@@ -111,26 +119,31 @@ class Frame:
 def encode(kind: Kind, array: Any = None, seq: int = 0) -> bytes:
     """The frame for ``kind`` carrying ``array`` (default: an empty uint8 array), numbered ``seq``.
 
+    Other numeric dtypes are widened to the nearest of :data:`DTYPES` (float16 → float32,
+    int16/uint16 → int32, uint32/uint64 → int64, big-endian → little-endian).
+
     Raises:
         ProtocolError: the array is not numeric/bool, has more than ``MAX_NDIM`` axes, or is
             larger than ``MAX_FRAME`` bytes.
     """
-    arr = np.zeros(0, np.uint8) if array is None else np.asarray(array)
-    if arr.dtype.kind == "f":
-        arr = arr.astype("<f8" if arr.dtype.itemsize > 4 else "<f4", copy=False)
-    elif arr.dtype.kind in "iu" and arr.dtype != np.uint8:
-        arr = arr.astype("<i8" if arr.dtype.itemsize > 4 else "<i4", copy=False)
-    code = _CODES.get(arr.dtype)
-    if code is None:
-        raise ProtocolError(f"cannot send an array of dtype {arr.dtype}")
+    arr = _EMPTY if array is None else np.asarray(array)
+    code = _CODES.get(arr.dtype.str)
+    if code is None:  # widen
+        wide = arr.dtype.itemsize > 4
+        if arr.dtype.kind == "f":
+            arr = arr.astype("<f8" if wide else "<f4")
+        elif arr.dtype.kind in "iu":
+            arr = arr.astype("<i8" if wide else "<i4")
+        code = _CODES.get(arr.dtype.str)
+        if code is None:
+            raise ProtocolError(f"cannot send an array of dtype {arr.dtype}")
     if arr.ndim > MAX_NDIM:
         raise ProtocolError(f"cannot send an array with {arr.ndim} axes (max {MAX_NDIM})")
-    payload = np.ascontiguousarray(arr).tobytes()
+    payload = arr.tobytes()  # C order, whatever the array's layout
     if len(payload) > MAX_FRAME:
         raise ProtocolError(f"frame of {len(payload)} bytes exceeds {MAX_FRAME}")
-    dims = b"".join(DIM.pack(n) for n in arr.shape)
-    header = HEADER.pack(MAGIC, int(kind), code, arr.ndim, seq % SEQ_MODULO, len(payload))
-    return header + dims + payload
+    header = HEADER.pack(MAGIC, kind, code, arr.ndim, seq % SEQ_MODULO, len(payload))
+    return header + _SHAPES[arr.ndim].pack(*arr.shape) + payload
 
 
 def encode_text(kind: Kind, text: str, seq: int = 0) -> bytes:
@@ -144,62 +157,48 @@ def encode_json(kind: Kind, value: Any, seq: int = 0) -> bytes:
     return encode_text(kind, json.dumps(value), seq)
 
 
-class FrameDecoder:
-    """Turns a byte stream into frames, incrementally; validates each header first.
+def frame_length(head: bytes, max_frame: int = MAX_FRAME) -> int:
+    """The whole length in bytes of the frame that ``head`` begins (header, shape, payload).
 
-    Args:
-        max_frame: the largest payload accepted, in bytes.
+    ``head`` is a copy of at least the header (:data:`HEAD_MAX` bytes always suffice); only
+    the header is read, and checked (:func:`parse_header`).
+
+    Raises:
+        ProtocolError: a bad header, a payload over ``max_frame``, or ``head`` too short.
     """
+    if len(head) < HEADER.size:
+        raise ProtocolError(f"a frame header needs {HEADER.size} bytes, got {len(head)}")
+    _kind, _dtype, ndim, _seq, nbytes = parse_header(head[: HEADER.size], max_frame)
+    return HEADER.size + DIM.size * ndim + nbytes
 
-    def __init__(self, max_frame: int = MAX_FRAME) -> None:
-        self.max_frame = max_frame
-        self._buf = bytearray()
 
-    @property
-    def pending(self) -> int:
-        """Bytes received that do not yet make a whole frame."""
-        return len(self._buf)
+def decode_frame(data: bytes, max_frame: int = MAX_FRAME) -> Frame:
+    """The one frame that ``data`` holds, exactly (nothing before or after it).
 
-    def feed(self, data: bytes) -> list[Frame]:
-        """Add ``data``; return the frames it completes (possibly none).
-
-        Raises:
-            ProtocolError: the stream is not a valid frame sequence (then the decoder is
-                spent: a stream that broke once is not read further).
-        """
-        self._buf.extend(data)
-        frames: list[Frame] = []
-        while True:
-            frame = self._next()
-            if frame is None:
-                return frames
-            frames.append(frame)
-
-    def _next(self) -> Frame | None:
-        if len(self._buf) < HEADER.size:
-            return None
-        kind, dtype, ndim, seq, nbytes = parse_header(
-            bytes(self._buf[: HEADER.size]), self.max_frame
-        )
-        head = HEADER.size + DIM.size * ndim
-        if len(self._buf) < head:
-            return None
-        shape = tuple(
-            DIM.unpack_from(self._buf, HEADER.size + DIM.size * i)[0] for i in range(ndim)
-        )
-        # No axis longer than the cap (a zero-size array cannot smuggle in an axis of 2⁶³,
-        # which numpy refuses with a ValueError), and the product must match the payload.
-        if any(n > self.max_frame for n in shape) or math.prod(shape) * dtype.itemsize != nbytes:
-            raise ProtocolError(f"frame shape {shape} of {dtype} does not match {nbytes} bytes")
-        if len(self._buf) < head + nbytes:
-            return None
-        payload = bytes(self._buf[head : head + nbytes])
-        del self._buf[: head + nbytes]
-        try:
-            array = np.frombuffer(payload, dtype=dtype).reshape(shape)
-        except ValueError as err:  # belt and braces: never let numpy's error escape
-            raise ProtocolError(f"frame shape {shape}: {err}") from None
-        return Frame(kind, array, seq)
+    Raises:
+        ProtocolError: a bad header, a shape that does not match the payload, an axis or a
+            payload over ``max_frame``, or ``data`` longer or shorter than the frame.
+    """
+    if len(data) < HEADER.size:
+        raise ProtocolError(f"a frame header needs {HEADER.size} bytes, got {len(data)}")
+    kind, dtype, ndim, seq, nbytes = parse_header(data[: HEADER.size], max_frame)
+    head = HEADER.size + DIM.size * ndim
+    if len(data) < head:
+        raise ProtocolError(f"a frame header of {head} bytes in {len(data)} bytes")
+    shape = _SHAPES[ndim].unpack_from(data, HEADER.size)
+    # No axis longer than the cap (a zero-size array cannot smuggle in an axis of 2⁶³,
+    # which numpy refuses with a ValueError), and the product must match the payload.
+    if max(shape, default=0) > max_frame or math.prod(shape) * dtype.itemsize != nbytes:
+        raise ProtocolError(f"frame shape {shape} of {dtype} does not match {nbytes} bytes")
+    if len(data) != head + nbytes:
+        raise ProtocolError(f"a frame of {head + nbytes} bytes in {len(data)} bytes")
+    try:
+        array = np.frombuffer(data, dtype=dtype, offset=head)
+        if ndim != 1:
+            array = array.reshape(shape)
+    except ValueError as err:  # belt and braces: never let numpy's error escape
+        raise ProtocolError(f"frame shape {shape}: {err}") from None
+    return Frame(kind, array, seq)
 
 
 def parse_header(
@@ -210,52 +209,17 @@ def parse_header(
     Raises:
         ProtocolError: bad magic, kind, dtype code or ndim, or a payload over ``max_frame``.
     """
-    magic, kind, code, ndim, seq, nbytes = HEADER.unpack(header)
+    magic, code_kind, code, ndim, seq, nbytes = HEADER.unpack(header)
     if magic != MAGIC:
         raise ProtocolError(f"bad frame magic {magic!r}")
-    if kind not in Kind.__members__.values():
-        raise ProtocolError(f"unknown frame kind {kind}")
-    if code not in DTYPES:
+    kind = _KINDS.get(code_kind)
+    if kind is None:
+        raise ProtocolError(f"unknown frame kind {code_kind}")
+    dtype = DTYPES.get(code)
+    if dtype is None:
         raise ProtocolError(f"unknown dtype code {code}")
     if ndim > MAX_NDIM:
         raise ProtocolError(f"frame with {ndim} axes (max {MAX_NDIM})")
     if nbytes > max_frame:
         raise ProtocolError(f"frame of {nbytes} bytes exceeds the {max_frame}-byte limit")
-    return Kind(kind), DTYPES[code], ndim, seq, nbytes
-
-
-def write_all(fd: int, data: bytes) -> None:
-    """Write all of ``data`` to a blocking file descriptor."""
-    view = memoryview(data)
-    while view:
-        try:
-            n = os.write(fd, view)
-        except InterruptedError:
-            continue
-        view = view[n:]
-
-
-def read_frame(fd: int, decoder: FrameDecoder) -> Frame | None:
-    """Block until the next frame arrives on ``fd``; None at end of stream.
-
-    Used by the worker, which has nothing else to do while it waits.
-
-    Raises:
-        ProtocolError: the stream is invalid, or ends inside a frame.
-    """
-    frames = decoder.feed(b"")
-    while not frames:
-        try:
-            data = os.read(fd, 1 << 16)
-        except OSError as err:
-            if err.errno == errno.EINTR:
-                continue
-            raise
-        if not data:
-            if decoder.pending:
-                raise ProtocolError("stream ended inside a frame")
-            return None
-        frames = decoder.feed(data)
-    if len(frames) > 1:  # a well-behaved host never pipelines requests
-        raise ProtocolError("more than one request at once")
-    return frames[0]
+    return kind, dtype, ndim, seq, nbytes

@@ -5,11 +5,16 @@ plus ``start()`` (spawn the sandbox; the policy loads inside while the host does
 work), two-phase ``send(obs)`` / ``receive()`` (so a race steps all sandboxed cars in
 parallel) and ``close()`` (kill the whole process tree).
 
+Observations and actions travel through a shared-memory channel (:mod:`submissions.channel`):
+the host writes the observation's frame into the request slot and rings the worker's pipe;
+the worker answers in the reply slot and rings the host's. No frame ever crosses a pipe, so
+a step costs two one-byte wake-ups and a few copies.
+
 Deadlines, Kaggle style: each action must arrive within ``step_deadline_s`` of its
 observation being sent; time beyond that is drawn from an overage bank of ``overage_s``
 seconds for the whole race, and the policy times out when the bank is spent. Loading and
-the first reset share a separate start-up allowance (``startup_s``). Replies are read by
-the thread that waits for one, which polls the reply pipes of every car with a request
+the first reset share a separate start-up allowance (``startup_s``). Replies are taken by
+the thread that waits for one, which polls the bells of every car with a request
 outstanding at once and timestamps each reply as it comes, so one slow car never eats into
 another's deadline (a thread drains the workers' stdout/stderr, off the step's path). A
 race may also set :attr:`SandboxedPolicy.race_deadline` (the job's wall-clock limit,
@@ -17,16 +22,20 @@ race may also set :attr:`SandboxedPolicy.race_deadline` (the job's wall-clock li
 
 Nothing the policy does can wedge the host:
 
-* the host never blocks writing to it: its input pipe is non-blocking, ``send`` writes what
-  fits and ``receive`` finishes the write within the step's deadline (a policy that stops
-  reading times out);
-* requests are numbered and only the reply to the current one counts; a reply numbered
-  otherwise (stale, unprompted, guessed ahead) or one that arrived before its request was
-  sent retires the policy as ``invalid`` (it broke the protocol);
-* at most :data:`MAX_QUEUED` replies wait on the host and each is at most
-  :data:`REPLY_MAX_FRAME` bytes; a policy that floods the host is retired ``invalid``;
-* a malformed frame (bad header, shape, size) is ``invalid``: whatever a hostile stream
-  provokes in the decoder is reported as a protocol error, never lost;
+* the host never blocks on it: a request is a copy into the slot and one byte on a
+  non-blocking pipe end of the host's own; every wait is a ``poll`` with a deadline;
+* requests are numbered and only the reply to the current one counts: the host reads the
+  reply slot only after a wake-up rung since its request; the slot must then carry the
+  request's number (a stale or forged one is ``invalid``), and the host decodes it from its
+  own copy (a worker scribbling in the slot at any time gets an ``invalid`` frame or a wrong
+  action, which is validated like any other); a reply already in the slot when its request
+  is posted (answers sent ahead) is ``invalid``; a reply never rung in does not count;
+* wake-ups are counted: more than one per request (a policy waking the host unasked, or
+  flooding it) is ``invalid``, so a ringing policy cannot keep the host busy;
+* the region's size is fixed and sealed by the host, so no ``ftruncate`` can make the
+  host's mapping fault; a reply longer than its slot or malformed is ``invalid``;
+* a worker whose end of the channel closes has exited (``error``) or, still running after
+  :data:`EXIT_WAIT_S`, closed it on purpose (``invalid``);
 * every failure's text is capped at :data:`~submissions.protocol.MAX_TEXT` bytes.
 
 Failures raise a :class:`PolicyFailure` whose ``dnf_reason`` the race records:
@@ -35,12 +44,14 @@ Failures raise a :class:`PolicyFailure` whose ``dnf_reason`` the race records:
 exception           ``dnf_reason``  when
 ==================  ==============  ===================================================
 ``PolicyCrash``     ``"error"``     load failed, the policy raised, the worker died
-``PolicyTimeout``   ``"timeout"``   deadline and overage bank exhausted, start-up took
-                                    longer than ``startup_s``, it stopped reading its
-                                    input, or the race's wall-clock limit was reached
+``PolicyTimeout``   ``"timeout"``   deadline and overage bank exhausted (no answer, or
+                                    one never rung in), start-up took longer than
+                                    ``startup_s``, or the race's wall-clock limit was
+                                    reached
 ``PolicyInvalid``   ``"invalid"``   wrong shape or dtype, NaN/inf, out of the action
                                     space; broke the protocol (malformed or oversized
-                                    frame, reply out of sequence, flooding)
+                                    frame, reply sent ahead, wake-ups unasked for,
+                                    its channel closed while it runs)
 ==================  ==============  ===================================================
 
 After any failure the sandbox is killed at once. A :class:`SandboxPool` keeps healthy
@@ -64,26 +75,26 @@ import shutil
 import tempfile
 import threading
 import time
-from collections import deque
 from pathlib import Path
 from typing import Any, NoReturn
 
 import numpy as np
 from gymnasium import spaces
+from numpy.typing import NDArray
 
 from agents.gym_env import register_bundle_loader
 from arena.actions import DiscreteActions
 from arena.env import RacingEnv
 from arena.observations import ObservationLayout
-from arena.race import action_problem
+from arena.race import ACTION_TOLERANCE, action_problem
 from arena.version import ENV_VERSION
 from submissions.bundle import Bundle, Manifest, open_bundle
+from submissions.channel import Channel, request_bytes_for
 from submissions.errors import SubmissionError
 from submissions.protocol import (
     MAX_TEXT,
     SEQ_MODULO,
     Frame,
-    FrameDecoder,
     Kind,
     ProtocolError,
     cap_text,
@@ -94,8 +105,7 @@ from submissions.sandbox import SandboxLimits, SandboxProcess, sandbox_mode
 log = logging.getLogger(__name__)
 OUTPUT_HEAD = 4 << 10  # bytes of the worker's output kept from the start
 OUTPUT_TAIL = 16 << 10  # … and from the end
-REPLY_MAX_FRAME = 64 << 10  # bytes: a reply is an action, an OK or ≤ 4 KiB of text
-MAX_QUEUED = 8  # replies waiting on the host; an honest worker has at most 2 (READY, OK)
+EXIT_WAIT_S = 3.0  # how long a closed channel waits to tell an exit from a hostile close, s
 MAX_DETAIL = MAX_TEXT - 96  # a failure's text, leaving room for "PolicyInvalid: " etc.
 
 
@@ -190,7 +200,7 @@ def action_space_of(spec: dict[str, Any]) -> spaces.Space[Any]:
     return spaces.Box(low, high, dtype=np.float32)
 
 
-# ---- the reader thread -------------------------------------------------------------------
+# ---- output and waiting ------------------------------------------------------------------
 
 
 class _Output:
@@ -222,11 +232,6 @@ class _Output:
         return bytes(self.head + gap + self.tail).decode("utf-8", "replace")
 
 
-_EOF = object()
-_FLOOD = object()
-_Item = tuple[float, Any]  # (arrival time, Frame | ProtocolError | _EOF | _FLOOD)
-
-
 def _drain_output(output_fd: int, output: _Output) -> None:
     """Until the pipe ends: read the worker's stdout/stderr into ``output`` (a thread)."""
     while True:
@@ -241,54 +246,60 @@ def _drain_output(output_fd: int, output: _Output) -> None:
         output.add(data)
 
 
-def _queue_frames(
-    decoder: FrameDecoder, data: bytes, now: float, out: deque[_Item], flooded: threading.Event
-) -> bool:
-    """Queue the frames ``data`` completes; False once the stream is over (error, flood).
-
-    ``out`` holds at most :data:`MAX_QUEUED` frames, then one final item (``_FLOOD``, with
-    ``flooded`` set, or the :class:`ProtocolError`); whatever a hostile stream provokes in
-    the decoder is a ProtocolError, never an escaping exception.
-    """
-    try:
-        frames = decoder.feed(data)
-    except ProtocolError as err:
-        out.append((now, err))
-        return False
-    except Exception as err:
-        out.append((now, ProtocolError(f"unreadable frame: {type(err).__name__}: {err}")))
-        return False
-    for frame in frames:
-        if len(out) >= MAX_QUEUED:
-            flooded.set()
-            out.append((now, _FLOOD))
-            return False
-        out.append((now, frame))
-    return True
-
-
 # Policies of this process with a request outstanding. Whichever thread waits for a reply
-# polls all of their reply pipes at once, so each reply is timestamped when it arrives even
-# while the host waits for another car (one slow car never eats into another's deadline),
-# and no thread sits between a reply and its reader.
+# polls the bells of all of them at once, so each reply is timestamped when it arrives even
+# while the host waits for another car (one slow car never eats into another's deadline).
 _WAITING: set[SandboxedPolicy] = set()
 _WAITING_LOCK = threading.Lock()
 
 
 def _pump(me: SandboxedPolicy, timeout: float) -> None:
-    """Wait up to ``timeout`` s for a reply on ``me``'s pipe or any waiting policy's; read
-    and timestamp every reply that came."""
+    """Wait up to ``timeout`` s for a wake-up on ``me``'s bell or any waiting policy's;
+    take and timestamp every reply that came."""
     with _WAITING_LOCK:
-        members = {p._from_worker: p for p in _WAITING if p._from_worker >= 0}
-    if me._from_worker >= 0:
-        members[me._from_worker] = me
-    poller = select.poll()
-    for fd in members:
-        poller.register(fd, select.POLLIN)
+        others = [p for p in _WAITING if p is not me and p._bell >= 0]
+    if others:
+        members = {p._bell: p for p in others}
+        members[me._bell] = me
+        poller = select.poll()
+        for fd in members:
+            poller.register(fd, select.POLLIN)
+    else:  # one car waiting (a lone policy, or the last of a step): its own poller
+        members, poller = {me._bell: me}, me._poller
     ready = poller.poll(max(0, math.ceil(timeout * 1000)))
     now = time.monotonic()
     for fd, _ in ready:
         members[fd]._pull(now)
+
+
+def _box_bounds(
+    space: spaces.Space[Any],
+) -> tuple[tuple[int, ...], list[float], list[float]] | None:
+    """A Box's shape and its bounds widened by ``ACTION_TOLERANCE`` exactly as
+    :func:`arena.race.action_problem` computes them (in the space's dtype), flattened to
+    Python floats; None for other spaces."""
+    if not isinstance(space, spaces.Box):
+        return None
+    low = (space.low - ACTION_TOLERANCE).astype(np.float64).ravel().tolist()
+    high = (space.high + ACTION_TOLERANCE).astype(np.float64).ravel().tolist()
+    return tuple(space.shape), low, high
+
+
+def _surely_within(
+    arr: NDArray[Any], bounds: tuple[tuple[int, ...], list[float], list[float]]
+) -> bool:
+    """Whether ``arr`` is, quickly seen, an action of the Box that ``bounds`` describes:
+    numeric, of its shape, every value within the widened bounds (NaN fails every
+    comparison). A shortcut on every step's path (a few µs less than
+    :func:`arena.race.action_problem`): it accepts only what ``action_problem`` accepts,
+    and anything it does not accept is ``action_problem``'s call."""
+    if arr.shape != bounds[0] or arr.dtype.kind not in "fiu":
+        return False
+    values = arr.ravel().tolist()
+    return all(lo <= v <= hi for v, lo, hi in zip(values, bounds[1], bounds[2], strict=True))
+
+
+_GONE = "gone"  # a reply item: the worker's end of the bell closed, no reply came
 
 
 # ---- the policy --------------------------------------------------------------------------
@@ -302,6 +313,7 @@ class SandboxedPolicy:
         limits: resource limits and deadlines (default: :class:`SandboxLimits`).
         env_spec: the env it races in (:func:`env_spec_of`, :func:`make_env_spec`); default:
             from the manifest's declared ``env`` and ``action_mode``.
+        pool: the :class:`SandboxPool` that ``close()`` gives it back to, if any.
 
     Attributes:
         name: the manifest's name.
@@ -327,6 +339,7 @@ class SandboxedPolicy:
         self.limits = limits or SandboxLimits()
         self.env_spec = env_spec or spec_for_manifest(bundle.manifest)
         self.space = action_space_of(self.env_spec)
+        self._box_bounds = _box_bounds(self.space)
         self.mode = sandbox_mode()
         self.failure: PolicyFailure | None = None
         self.sandbox_id: str | None = None  # of the latest start (it is in the worker's argv)
@@ -336,19 +349,20 @@ class SandboxedPolicy:
         self.step_times: list[float] = []
         self._output = _Output()
         self._proc: SandboxProcess | None = None
-        self._frames: deque[_Item] = deque()  # replies read, not yet taken
-        self._flooded = threading.Event()
-        self._decoder = FrameDecoder(REPLY_MAX_FRAME)
-        self._pull_lock = threading.Lock()
-        self._from_worker = -1  # the reply pipe (non-blocking; -1 once over)
+        self._channel: Channel | None = None
+        self._bell = -1  # the channel's bell while it may still ring (-1: ended or closed)
+        self._poller = select.poll()  # polls the bell alone
+        self._lock = threading.Lock()  # _pull may run on another waiting thread
         self._output_fd = -1
         self._reader: threading.Thread | None = None
-        self._to_worker = -1
         self._started_at = 0.0
         self._sent_at: float | None = None
         self._ready = False
         self._seq = 0  # the number of the latest request (READY comes as 0)
-        self._unsent = bytearray()  # what the worker's full input pipe has not taken yet
+        self._posted = 0  # requests posted since the start (READY counts as one)
+        self._rung = 0  # wake-ups read from the bell since the start
+        self._rung_at_post = 0  # … when the current request was posted
+        self._reply: tuple[float, Frame | ProtocolError | str] | None = None  # to _seq
 
     # ---- lifecycle -----------------------------------------------------------------------
 
@@ -363,35 +377,34 @@ class SandboxedPolicy:
         self.failure = None
         self.bank = self.limits.overage_s
         self._ready = False
-        self._frames = deque()
-        self._flooded = threading.Event()
-        self._decoder = FrameDecoder(REPLY_MAX_FRAME)
-        self._seq = 0
-        self._unsent.clear()
-        req_r, req_w = os.pipe()  # host → worker
-        os.set_blocking(req_w, False)  # never block on a worker that stops reading
-        rep_r, rep_w = os.pipe()  # worker → host
+        self._seq = self._rung = self._rung_at_post = 0
+        self._posted = 1  # READY answers the start itself
+        self._reply = None
+        channel = Channel(request_bytes_for(self.env_spec.get("obs_shape", [])))
         out_r, out_w = os.pipe()  # the worker's stdout and stderr
-        args = ["--in", str(req_r), "--out", str(rep_w), "--spec", json.dumps(self.env_spec)]
+        args = ["--channel", channel.worker_arg(), "--spec", json.dumps(self.env_spec)]
         try:
             self._proc = SandboxProcess(
                 args,
                 self.bundle.root,
                 self.limits,
-                pass_fds=(req_r, rep_w),
+                pass_fds=channel.worker_fds,
                 output_fd=out_w,
                 mode=self.mode,
             )
         except BaseException:
-            for fd in (req_r, req_w, rep_r, rep_w, out_r, out_w):
+            channel.close()
+            for fd in (out_r, out_w):
                 os.close(fd)
             raise
+        finally:
+            channel.spawned()  # the worker has its copies (or there is no worker)
+        os.close(out_w)
         self.sandbox_id = self._proc.id
-        for fd in (req_r, rep_w, out_w):  # the worker's ends
-            os.close(fd)
-        self._to_worker = req_w
-        os.set_blocking(rep_r, False)
-        self._from_worker = rep_r
+        self._channel = channel
+        self._bell = channel.bell
+        self._poller = select.poll()
+        self._poller.register(channel.bell, select.POLLIN)
         self._output_fd = out_r
         self._started_at = time.monotonic()
         self._reader = threading.Thread(
@@ -406,7 +419,7 @@ class SandboxedPolicy:
         """Ask the worker to stop, then kill the whole tree; idempotent.
 
         A policy of a :class:`SandboxPool` that is healthy (started, loaded, no failure, no
-        request or reply outstanding) goes back to its pool instead, still running.
+        request outstanding) goes back to its pool instead, still running.
         """
         if self._pooled:
             return
@@ -420,18 +433,17 @@ class SandboxedPolicy:
         proc, self._proc = self._proc, None
         if proc is None:
             return
-        if proc.poll() is None and self.failure is None and not self._unsent:
-            with contextlib.suppress(OSError):  # non-blocking: a full pipe just gets killed
-                os.write(self._to_worker, encode(Kind.CLOSE))
+        channel = self._channel
+        if proc.poll() is None and self.failure is None and channel is not None:
+            with contextlib.suppress(OSError, ProtocolError):  # never blocks: see Channel.post
+                channel.post(encode(Kind.CLOSE, seq=self._next_seq()))
                 proc.wait(0.5)
         proc.kill()
         self._not_waiting()
-        with self._pull_lock:
-            fds = (self._to_worker, self._from_worker)
-            self._from_worker = -1
-        for fd in fds:
-            with contextlib.suppress(OSError):
-                os.close(fd)
+        with self._lock:
+            self._channel, self._bell = None, -1
+            if channel is not None:
+                channel.close()
         if self._reader is not None:
             self._reader.join(5.0)
             if not self._reader.is_alive():
@@ -449,8 +461,7 @@ class SandboxedPolicy:
             and self._ready
             and self.failure is None
             and self._sent_at is None
-            and not self._unsent
-            and not self._frames
+            and self._bell >= 0
         )
 
     def _recycle(self) -> None:
@@ -478,7 +489,7 @@ class SandboxedPolicy:
         """
         self.start()
         if not self._ready:
-            frame = self._wait(self._started_at + self.limits.startup_s, "start up", 0)
+            frame = self._wait(self._started_at + self.limits.startup_s, "start up")
             if frame.kind != Kind.READY:
                 self._fail(
                     PolicyCrash(f"policy {self.name!r}: expected READY, got {frame.kind.name}")
@@ -499,11 +510,8 @@ class SandboxedPolicy:
         if self.race_deadline is not None:
             allowance_end = min(allowance_end, self.race_deadline)
         seed_arr = np.array([] if seed is None else [seed], dtype=np.int64)
-        seq = self._next_seq()
-        asked = time.monotonic()
-        self._write(encode(Kind.RESET, seed_arr, seq))
-        self._flush(allowance_end, "reset")
-        frame = self._wait(allowance_end, "reset", seq, asked)
+        self._post(Kind.RESET, seed_arr)
+        frame = self._wait(allowance_end, "reset")
         if frame.kind != Kind.OK:
             self._fail(PolicyCrash(f"policy {self.name!r}: expected OK, got {frame.kind.name}"))
 
@@ -516,17 +524,18 @@ class SandboxedPolicy:
         """Send an observation; the step's clock starts now.
 
         Raises:
-            PolicyFailure: it has already failed, or its input is closed (it died).
+            PolicyFailure: it has already failed, answered ahead, or its worker is gone.
+            ProtocolError: ``obs`` does not fit the channel (larger than the env spec's
+                observation): the caller's mistake, not the policy's.
         """
         if self.failure is not None:
             raise self.failure
         if not self._ready:
             self.reset(None)
         self._check_race_deadline()
-        frame = encode(Kind.ACT, np.asarray(obs), self._next_seq())
-        self._pull(time.monotonic())  # anything already there came unasked (checked later)
-        self._sent_at = time.monotonic()  # before the write: no honest reply precedes it
-        self._write(frame)
+        sent = time.monotonic()  # the step's clock starts before the request is visible
+        self._post(Kind.ACT, obs)
+        self._sent_at = sent
         with _WAITING_LOCK:
             _WAITING.add(self)
 
@@ -546,8 +555,7 @@ class SandboxedPolicy:
         if self.race_deadline is not None:
             until = min(until, self.race_deadline)
         try:
-            self._flush(until, "act")
-            frame, arrived = self._wait_timed(until, "act", self._seq, sent)
+            frame, arrived = self._wait_timed(until, "act")
         finally:
             self._not_waiting()
         took = arrived - sent
@@ -559,12 +567,23 @@ class SandboxedPolicy:
             self._fail(PolicyInvalid(f"policy {self.name!r}: {frame.text}"))
         if frame.kind != Kind.ACTION:
             self._fail(PolicyCrash(f"policy {self.name!r}: expected ACTION, got {frame.kind.name}"))
-        problem = action_problem(frame.array, self.space)
+        return self._action(frame.array)
+
+    def _action(self, arr: NDArray[Any]) -> Any:
+        """``arr`` as the action it is (float32 array, or int if discrete), once checked
+        against the action space (:func:`arena.race.action_problem`).
+
+        Raises:
+            PolicyInvalid: it is not an action of the space.
+        """
+        if self._box_bounds is not None and _surely_within(arr, self._box_bounds):
+            return arr.astype(np.float32)
+        problem = action_problem(arr, self.space)  # the rule (and what is wrong)
         if problem is not None:
             self._fail(PolicyInvalid(f"policy {self.name!r}: {problem}"))
         if isinstance(self.space, spaces.Discrete):
-            return int(frame.array)
-        return frame.array.astype(np.float32)
+            return int(arr)
+        return arr.astype(np.float32)
 
     # ---- reports -------------------------------------------------------------------------
 
@@ -594,74 +613,76 @@ class SandboxedPolicy:
         with _WAITING_LOCK:
             _WAITING.discard(self)
 
-    def _pull(self, now: float) -> None:
-        """Read what the reply pipe holds (never blocks); queue its frames as of ``now``."""
-        with self._pull_lock:
-            while self._from_worker >= 0:
-                try:
-                    data = os.read(self._from_worker, 1 << 16)
-                except (BlockingIOError, InterruptedError):
-                    return
-                except OSError:
-                    data = b""
-                if not data:
-                    self._frames.append((now, _EOF))
-                elif _queue_frames(self._decoder, data, now, self._frames, self._flooded):
-                    continue
-                # a stream that ended, broke or flooded is over: stop reading it
-                with contextlib.suppress(OSError):
-                    os.close(self._from_worker)
-                self._from_worker = -1
+    def _post(self, kind: Kind, array: Any) -> None:
+        """Number and post a request (never blocks); its reply is the only one that counts.
 
-    def _next_item(self, until: float) -> _Item | None:
-        """The next reply read (waiting until ``until``), or None."""
-        while not self._frames:
-            left = until - time.monotonic()
-            if left <= 0:
-                self._pull(time.monotonic())  # what came while the host was busy elsewhere
-                break
-            if self._from_worker < 0:
-                time.sleep(left)  # nothing more can come
-                break
-            _pump(self, left)
-        return self._frames.popleft() if self._frames else None
+        Raises:
+            PolicyFailure: the reply slot already holds this number (answered ahead), or the
+                worker's end of the ring is closed.
+            ProtocolError: the request does not fit the channel (the caller's mistake).
+        """
+        channel = self._channel
+        assert channel is not None  # started
+        seq = (self._seq + 1) % SEQ_MODULO or 1  # 0 is READY's
+        frame = encode(kind, array, seq)
+        if len(frame) > channel.request_bytes:  # before any state changes: not its fault
+            raise ProtocolError(
+                f"a {kind.name} request of {len(frame)} bytes does not fit the channel's "
+                f"{channel.request_bytes} (the env spec's obs_shape is "
+                f"{self.env_spec.get('obs_shape')})"
+            )
+        self._seq = seq
+        if channel.reply_seq() == seq:  # an honest slot holds the previous reply's number
+            self._fail(
+                PolicyInvalid(
+                    f"policy {self.name!r} broke the protocol: a reply numbered {seq} was "
+                    "there before its request (answers sent ahead)"
+                )
+            )
+        with self._lock:
+            self._reply = None
+            self._rung_at_post = self._rung
+            self._posted += 1
+        try:
+            channel.post(frame)
+        except BrokenPipeError:
+            self._gone(f"{kind.name} request")
+
+    def _pull(self, now: float) -> None:
+        """Read the bell (never blocks) and, if the current request's reply has come, take a
+        copy of it, timestamped ``now``."""
+        with self._lock:
+            channel = self._channel
+            if channel is None or self._bell < 0:
+                return
+            count, ended = channel.drain()
+            self._rung += count
+            if ended:
+                self._bell = -1
+            if self._reply is not None:
+                return
+            if self._rung > self._rung_at_post:
+                # An honest worker rings only after writing its reply, and the host drains
+                # every ring before taking a reply: a ring since the request with the slot
+                # numbered otherwise is a stale, forged or scribbled reply.
+                seq = channel.reply_seq()
+                frame: Frame | ProtocolError | str
+                if seq != self._seq:
+                    frame = ProtocolError(
+                        f"a reply numbered {seq} rung in while waiting for the reply to {self._seq}"
+                    )
+                else:
+                    try:
+                        frame = channel.take()
+                    except ProtocolError as err:
+                        frame = err
+                self._reply = (now, frame)
+            elif ended:
+                self._reply = (now, _GONE)
 
     def _next_seq(self) -> int:
         self._seq = (self._seq + 1) % SEQ_MODULO or 1  # 0 is READY's
         return self._seq
-
-    def _write(self, data: bytes) -> None:
-        """Queue ``data`` for the worker and write what its pipe takes now (never blocks)."""
-        self._unsent += data
-        self._flush(None, "")
-
-    def _flush(self, until: float | None, what: str) -> None:
-        """Write the queued bytes; wait for room until ``until`` (None: do not wait).
-
-        Raises:
-            PolicyFailure: the worker is gone (crash), or its input was still full at
-                ``until`` (timeout: it stopped reading).
-        """
-        while self._unsent:
-            try:
-                n = os.write(self._to_worker, self._unsent)
-            except (BlockingIOError, InterruptedError):
-                n = 0
-            except OSError as err:  # BrokenPipeError: the worker is gone
-                self._fail(PolicyCrash(f"policy {self.name!r}: its worker is gone ({err})"))
-            del self._unsent[:n]
-            if not self._unsent or until is None:
-                return
-            left = until - time.monotonic()
-            if left <= 0:
-                self._check_race_deadline()
-                self._fail(
-                    PolicyTimeout(
-                        f"policy {self.name!r} stopped reading its input ({what}: "
-                        f"{len(self._unsent)} bytes not taken by the deadline)"
-                    )
-                )
-            select.select([], [self._to_worker], [], left)
 
     def _check_race_deadline(self) -> None:
         if self.race_deadline is not None and time.monotonic() >= self.race_deadline:
@@ -669,22 +690,33 @@ class SandboxedPolicy:
                 PolicyTimeout(f"policy {self.name!r}: the race's wall-clock limit was reached")
             )
 
-    def _wait(self, until: float, what: str, seq: int, asked: float | None = None) -> Frame:
-        return self._wait_timed(until, what, seq, asked)[0]
+    def _wait(self, until: float, what: str) -> Frame:
+        return self._wait_timed(until, what)[0]
 
-    def _wait_timed(
-        self, until: float, what: str, seq: int, asked: float | None = None
-    ) -> tuple[Frame, float]:
-        """The reply to request ``seq`` (READY: 0), asked at ``asked``, and its arrival time.
+    def _wait_timed(self, until: float, what: str) -> tuple[Frame, float]:
+        """The reply to the current request (READY: 0) and its arrival time.
 
         Raises:
-            PolicyFailure: nothing by ``until`` (timeout), a flood, a reply numbered
-                otherwise or older than its request, a broken frame (invalid), an ERROR
-                reply or the worker's end (crash).
+            PolicyFailure: nothing by ``until`` (timeout), more wake-ups than requests, a
+                broken frame or a reply numbered otherwise (invalid), an ERROR reply or the
+                worker's end (crash).
         """
-        if self._flooded.is_set():
-            self._flood()
-        got = self._next_item(until)
+        while self._reply is None and self._bell >= 0:
+            if self._rung > self._posted:
+                break
+            left = until - time.monotonic()
+            if left <= 0:
+                self._pull(time.monotonic())  # what came while the host was busy elsewhere
+                break
+            _pump(self, left)
+        if self._rung > self._posted:
+            self._fail(
+                PolicyInvalid(
+                    f"policy {self.name!r} broke the protocol: {self._rung} wake-ups for "
+                    f"{self._posted} requests (it woke the host unasked)"
+                )
+            )
+        got = self._reply
         if got is None:
             self._check_race_deadline()
             if what == "act":
@@ -695,43 +727,35 @@ class SandboxedPolicy:
                     "start-up allowance"
                 )
             )
-        if self._flooded.is_set():
-            self._flood()
         arrived, item = got
-        if isinstance(item, Frame):
-            if asked is not None and arrived < asked:
-                self._fail(
-                    PolicyInvalid(
-                        f"policy {self.name!r} broke the protocol: a {item.kind.name} reply "
-                        "sent before its request (answers sent ahead)"
-                    )
-                )
-            if item.seq != seq:
-                self._fail(
-                    PolicyInvalid(
-                        f"policy {self.name!r} broke the protocol: a {item.kind.name} reply "
-                        f"numbered {item.seq} while waiting for the reply to {seq}"
-                    )
-                )
-            if item.kind == Kind.ERROR:
-                self._fail(PolicyCrash(f"policy {self.name!r}: {item.text}"))
-            return item, arrived
         if isinstance(item, ProtocolError):
             self._fail(PolicyInvalid(f"policy {self.name!r} broke the protocol: {item}"))
-        if item is _FLOOD:
-            self._flood()
-        status = self._proc.wait(2.0) if self._proc is not None else None
+        if isinstance(item, str):
+            self._gone(what)
+        if item.seq != self._seq:  # the slot changed between the peek and the copy
+            self._fail(
+                PolicyInvalid(
+                    f"policy {self.name!r} broke the protocol: a {item.kind.name} reply "
+                    f"numbered {item.seq} while waiting for the reply to {self._seq}"
+                )
+            )
+        if item.kind == Kind.ERROR:
+            self._fail(PolicyCrash(f"policy {self.name!r}: {item.text}"))
+        return item, arrived
+
+    def _gone(self, what: str) -> NoReturn:
+        """Its end of the channel closed: it exited (crash), or, still running, closed the
+        channel itself (invalid). Waits at most :data:`EXIT_WAIT_S` to tell which."""
+        status = self._proc.wait(EXIT_WAIT_S) if self._proc is not None else None
+        if status is None:
+            self._fail(
+                PolicyInvalid(
+                    f"policy {self.name!r} broke the protocol: it closed its channel ({what})"
+                )
+            )
         last = self.output.strip().splitlines()[-1:] or ["(no output)"]
         self._fail(
             PolicyCrash(f"policy {self.name!r}: its worker exited ({status}): {last[0][:300]}")
-        )
-
-    def _flood(self) -> NoReturn:
-        self._fail(
-            PolicyInvalid(
-                f"policy {self.name!r} broke the protocol: more than {MAX_QUEUED} replies "
-                "unasked for (flooding)"
-            )
         )
 
     def _timeout(self, detail: str) -> PolicyTimeout:

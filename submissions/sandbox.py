@@ -17,9 +17,13 @@ filesystem         empty read-only root; binds of ``/usr``,    the host's, narro
                                                                (``status``, ``stat``...), never
                                                                ``net/`` or another pid
 network, IPC       new network and IPC namespaces; seccomp     seccomp: every ``socket()`` and
-                   refuses every ``socket()``/``socketpair``   ``socketpair``, SysV IPC and POSIX
-                   SysV IPC and POSIX message queues           mqueue refused; Landlock denies
-                                                               TCP bind/connect too
+                   refuses every ``socket()``/``socketpair``   ``socketpair``, SysV IPC, POSIX
+                   SysV IPC, POSIX message queues and          mqueue and ``memfd_create``
+                   ``memfd_create``                            refused; Landlock denies TCP
+                                                               bind/connect too
+the channel        inherited descriptors only: its own sealed memfd (mapped shared) and two
+                   pipe ends (:mod:`submissions.channel`); nothing named, nothing another
+                   sandbox holds
 processes          pid namespace (sees only itself), cgroup    ONE process: ``fork``/``vfork``/
                    ``pids.max`` (root) or ``RLIMIT_NPROC``     ``clone`` without ``CLONE_THREAD``
                                                                refused (threads allowed);
@@ -256,9 +260,11 @@ _DENIED = (
 )
 
 
-_DENIED_BOTH = (  # neither a policy nor the protocol needs these (pipes need no socket)
+_DENIED_BOTH = (  # neither a policy nor the channel needs these (pipes need no socket)
     "socket",
     "socketpair",
+    "memfd_create",  # the channel's region is the host's memfd, inherited: no new ones
+    "memfd_secret",
     "shmget",
     "shmat",
     "shmctl",

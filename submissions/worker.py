@@ -21,7 +21,7 @@ bundle: parent-death signal, Landlock (read-only paths, one writable temp folder
 signals scoped to the sandbox) and the seccomp filter handed over by the host.
 
 The policy's prints go to stdout/stderr, which the host drains and caps; protocol frames go
-over two dedicated pipes.
+through the shared-memory channel the host made for it (:mod:`submissions.channel`).
 """
 
 from __future__ import annotations
@@ -42,24 +42,14 @@ from typing import Any
 
 import numpy as np
 
-from submissions.protocol import (
-    MAX_TEXT,
-    FrameDecoder,
-    Kind,
-    ProtocolError,
-    encode,
-    encode_json,
-    encode_text,
-    read_frame,
-    write_all,
-)
+from submissions.channel import WorkerChannel
+from submissions.protocol import MAX_TEXT, Kind, ProtocolError, encode, encode_json, encode_text
 from submissions.sandbox import apply_seccomp, drop_identity, landlock_restrict
 
 
 def _args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog="submissions.worker", description=__doc__)
-    parser.add_argument("--in", dest="fd_in", type=int, required=True)
-    parser.add_argument("--out", dest="fd_out", type=int, required=True)
+    parser.add_argument("--channel", required=True, help="memfd,ring,bell (inherited fds)")
     parser.add_argument("--root", type=Path, required=True, help="the extracted bundle")
     parser.add_argument("--spec", default="{}", help="the env spec, JSON")
     parser.add_argument("--mode", choices=("bwrap", "seccomp"), required=True)
@@ -146,11 +136,12 @@ def _describe(err: BaseException) -> str:
     return f"{type(err).__name__}: {err}"[:MAX_TEXT]
 
 
-def serve(policy: Any, fd_in: int, fd_out: int) -> None:
-    """Answer RESET / ACT frames until CLOSE or end of input; each reply carries its
+def serve(policy: Any, channel: WorkerChannel) -> None:
+    """Answer RESET / ACT requests until CLOSE or the host's end; each reply carries its
     request's sequence number (the host counts no other)."""
-    decoder = FrameDecoder()
-    while (frame := read_frame(fd_in, decoder)) is not None:
+    last = 0  # READY's
+    while (frame := channel.request(last)) is not None:
+        last = frame.seq
         if frame.kind == Kind.CLOSE:
             return
         try:
@@ -167,7 +158,10 @@ def serve(policy: Any, fd_in: int, fd_out: int) -> None:
         except Exception as err:  # the policy's bug: report it, the host decides
             traceback.print_exc()
             reply = encode_text(Kind.ERROR, _describe(err), frame.seq)
-        write_all(fd_out, reply)
+        try:
+            channel.reply(reply)
+        except ProtocolError as err:  # an action too large for the reply slot
+            channel.reply(encode_text(Kind.INVALID, f"not a valid action: {err}", frame.seq))
 
 
 def _action_frame(action: Any, seq: int) -> bytes:
@@ -184,17 +178,18 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point; the exit status is 0 after CLOSE, 1 when the policy failed to load."""
     args = _args(argv)
     landlock = confine(args)
+    channel = WorkerChannel(args.channel)
     spec = json.loads(args.spec)
     try:
         policy, manifest = load(args.root, spec)
     except BaseException as err:  # a load may raise anything, SystemExit included
         traceback.print_exc()
-        write_all(args.fd_out, encode_text(Kind.ERROR, f"loading failed: {_describe(err)}"))
+        channel.reply(encode_text(Kind.ERROR, f"loading failed: {_describe(err)}"))
         return 1
     hello = {"name": str(manifest.get("name", "")), "format": manifest.get("format")}
-    write_all(args.fd_out, encode_json(Kind.READY, hello | {"landlock": landlock}))
+    channel.reply(encode_json(Kind.READY, hello | {"landlock": landlock}))
     with contextlib.suppress(BrokenPipeError):
-        serve(policy, args.fd_in, args.fd_out)
+        serve(policy, channel)
     return 0
 
 

@@ -132,13 +132,16 @@ SIMPLE_CASES: dict[str, tuple[str, tuple[str, str | None], SandboxLimits]] = {
         ("dnf", "invalid"),
         FAST,
     ),
-    "forged-frame": (  # writes a header announcing a 1 TiB frame to the protocol pipe
+    "forged-frame": (  # writes a header announcing a 1 TiB frame into its reply slot
         """
-        import struct
+        import gc, struct
+        from submissions.channel import REPLY_BYTES
         class Policy(Driver):
             def attack(self, obs):
-                fd = int(sys.argv[sys.argv.index("--out") + 1])
-                os.write(fd, struct.pack("<2sBBB3xQ", b"SL", 5, 1, 1, 1 << 40))
+                ch = next(o for o in gc.get_objects() if type(o).__name__ == "WorkerChannel")
+                at, seq = len(ch.memory) - REPLY_BYTES, struct.unpack_from("<H", ch.memory, 6)[0]
+                ch.memory[at : at + 24] = struct.pack("<2sBBBxHQQ", b"SL", 5, 1, 1, seq, 1 << 40, 1)
+                os.write(ch.bell, b"\\x01")
                 time.sleep(30)
         """,
         ("dnf", "invalid"),  # a broken frame is a protocol breach (submissions/remote.py)

@@ -1,226 +1,286 @@
-"""Hostile policies against the worker protocol: nothing a policy sends can wedge the host.
+"""Hostile policies against the worker protocol: nothing a policy does can wedge the host.
 
 Each case is an attack from the outside review of issue 12 ("any upload can hang a race
 forever", "the host's frame queue is unbounded", "a malformed frame shape kills the host's
 reader thread", "a policy answering just under the 0.25 s deadline stretches a 4 s race to
-150 s", "15 MiB in, 11 MiB replay"), rebuilt from its description by someone who read
-``submissions/protocol.py``: the policy finds its protocol pipes in its own ``sys.argv``
-(``--in``/``--out``) and writes raw frames on them itself. Per request, the host counts only
-the reply numbered like its request and arriving after it (see :mod:`submissions.remote`).
+150 s", "15 MiB in, 11 MiB replay"), and the attacks on the shared-memory channel that
+replaced the frame pipes (scribbling the region, wake-ups ahead of time or never, closed
+descriptors, forged values, mapping past the region), rebuilt by someone who read
+``submissions/channel.py`` and ``submissions/worker.py``: the policy finds its channel (the
+worker's ``WorkerChannel``) with ``gc`` and writes the region and the bell itself. Several
+attackers race at once against an honest pursuit car (one sandbox start-up each, in
+parallel), in both sandbox modes. The exact timings of the same attacks, without a
+sandbox, are in ``test_channel.py``.
 """
 
 from __future__ import annotations
 
 import gzip
 import json
-import resource
 import struct
 import textwrap
-import threading
 import time
-from collections import deque
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from agents.baselines import make_baseline
+from agents.loading import DEFAULT_LAYOUT
+from arena.race import run_race
 from submissions.bundle import make_bundle
+from submissions.channel import REPLY_BYTES
 from submissions.jobs import Entrant, RaceJob, race_wall_clock_s, run_race_job
-from submissions.protocol import HEADER, MAX_TEXT, FrameDecoder, Kind, encode
-from submissions.remote import (
-    _FLOOD,
-    MAX_QUEUED,
-    PolicyTimeout,
-    SandboxedPolicy,
-    _queue_frames,
-)
+from submissions.protocol import HEADER, MAX_TEXT
+from submissions.remote import EXIT_WAIT_S, PolicyTimeout, SandboxedPolicy
 from submissions.sandbox import SandboxLimits
 
-from .conftest import (
-    MakeBundle,
-    manifest_for,
-    python_source,
-    race_against_pursuit,
-    sandbox_processes,
-)
+from .conftest import MakeBundle, manifest_for, python_source, sandbox_processes
 
 # Short bank: a policy that merely stops answering is retired in about a second.
 QUICK = SandboxLimits(step_deadline_s=0.25, overage_s=1.0, startup_s=60.0)
-# A bank so long that a failure reported within seconds cannot have come from it.
-FAST_BANK = SandboxLimits(step_deadline_s=0.25, overage_s=30.0, startup_s=60.0)
 
-# Shared by the attacks: the policy's own protocol pipes and the frame helpers.
-PIPES = """
-import fcntl, os, struct, sys, time
-import numpy as np
-from submissions.protocol import Kind, encode, write_all
-
-FD_IN = int(sys.argv[sys.argv.index("--in") + 1])
-FD_OUT = int(sys.argv[sys.argv.index("--out") + 1])
+# Shared by the attacks: the policy's own channel, found the way an attacker would.
+CHANNEL = """
+import ctypes, errno, gc, json, mmap, os, stat, struct, threading
+from submissions.channel import REPLY_BYTES
+from submissions.protocol import Kind, encode
 
 
-def shrink(fd):
-    try:
-        fcntl.fcntl(fd, 1031, 4096)  # F_SETPIPE_SZ: the smallest pipe there is
-    except OSError:
-        pass
+def channel():
+    return next(o for o in gc.get_objects() if type(o).__name__ == "WorkerChannel")
+
+
+def request_seq(ch):
+    return struct.unpack_from("<H", ch.memory, 6)[0]  # the observation frame's number
+
+
+def forge(ch, frame, ring=True):
+    at = len(ch.memory) - REPLY_BYTES
+    ch.memory[at : at + len(frame)] = frame
+    if ring:
+        os.write(ch.bell, b"\\x01")
+
+
+def memfds():
+    found = []
+    for fd in range(1024):
+        try:
+            st = os.fstat(fd)
+        except OSError:
+            continue
+        if stat.S_ISREG(st.st_mode) and st.st_nlink == 0:
+            found.append([fd, st.st_ino, st.st_size])
+    return found
 """
 
 
 def attack(body: str) -> str:
-    """:data:`PIPES` then ``body`` (dedented)."""
-    return PIPES + textwrap.dedent(body)
+    """:data:`CHANNEL` then ``body`` (dedented)."""
+    return CHANNEL + textwrap.dedent(body)
 
 
-def race_contained(policy: SandboxedPolicy, reason: str, within_s: float) -> str:
-    """Race ``policy`` against pursuit; it retires with ``reason`` and the race ends in
-    ``within_s``; the pursuit car finishes; nothing of the sandbox survives. Its detail."""
+def race_many(
+    bundles: dict[str, str], make_python_bundle: MakeBundle, limits: SandboxLimits
+) -> tuple[dict[str, tuple[str, str | None, str]], dict[str, SandboxedPolicy], float]:
+    """Race one sandboxed car per ``name: body`` (all started at once) and an honest
+    in-process pursuit car; the pursuit car finishes and nothing of any sandbox survives.
+    Returns ``{name: (status, dnf_reason, detail)}``, the policies and the seconds taken."""
+    policies = {
+        name: SandboxedPolicy(make_python_bundle(body, name=name.replace("-", "_")), limits)
+        for name, body in bundles.items()
+    }
+    pursuit = make_baseline("pursuit", DEFAULT_LAYOUT)
     start = time.monotonic()
-    result = race_against_pursuit(policy)
+    result, replay = run_race([*policies.values(), pursuit], track="oval", laps=1, seed=0)
     took = time.monotonic() - start
-    car, other = result.cars
-    assert (car.status, car.dnf_reason) == ("dnf", reason), policy.output[-2000:]
-    assert other.status == "finished"
-    assert took < within_s, f"the race took {took:.1f} s"
-    assert policy.sandbox_id is not None and sandbox_processes(policy.sandbox_id) == []
-    assert policy.failure is not None
-    return str(policy.failure)
+    assert result.cars[-1].status == "finished", result.cars[-1]
+    details = {
+        e["car"]: str(e.get("detail", ""))
+        for e in (replay.events if replay else [])
+        if e["type"] == "dnf"
+    }
+    out = {}
+    for (name, policy), car in zip(policies.items(), result.cars, strict=False):
+        assert policy.sandbox_id is not None and sandbox_processes(policy.sandbox_id) == []
+        out[name] = (car.status, car.dnf_reason, details.get(car.agent, ""))
+    return out, policies, took
 
 
-def test_answers_sent_ahead_into_a_shrunken_pipe_do_not_wedge_the_race(
+FORGED = {  # name: (the frame written into the reply slot, rung; a word of the detail)
+    "nan": ("encode(Kind.ACTION, np.array([np.nan, 0.0], np.float32), seq)", "NaN"),
+    "huge": ("encode(Kind.ACTION, np.array([1e300, 1e300]), seq)", "outside"),
+    "bool": ("encode(Kind.ACTION, np.array([True, False]), seq)", "not a number"),
+    "1tib": ('struct.pack("<2sBBBxHQQ", b"SL", 5, 1, 1, seq, 1 << 40, 1 << 38)', "exceeds"),
+    "absurd-shape": (
+        'struct.pack("<2sBBBxHQQQ", b"SL", 5, 1, 2, seq, 0, 0, 1 << 63)',
+        "shape",
+    ),
+    "past-slot": (
+        f'struct.pack("<2sBBBxHQQ", b"SL", 5, 5, 1, seq, {REPLY_BYTES}, {REPLY_BYTES})',
+        "slot",
+    ),
+}
+
+
+@pytest.mark.slow
+def test_forged_replies_in_the_shared_region_are_invalid(
     mode: str, make_python_bundle: MakeBundle
 ) -> None:
-    """The issue's critical wedge: answers for the next steps sent at once (numbered right,
-    guessed from the step count: RESET is request 1, step k is k + 1), the input pipe shrunk
-    to one page, then it never reads again. The host used to take a queued frame as each
-    step's answer, fill the pipe and block in write() forever. Five answers ahead stay under
-    the flood bound, so it is the arrival-before-request check that catches them."""
-    bundle = make_python_bundle(
-        attack(
+    """Values written straight into the reply slot and rung in: NaN, 1e300, a bool array
+    (wrong dtype), a 1 TiB header, a zero-size (0, 2⁶³) shape, a frame longer than the slot.
+    Each is copied out, checked and refused: ``invalid``, its car alone; the pursuit car
+    finishes. Two honest sandboxed cars list the memory they can reach: one region each,
+    its own (no other car's channel is in reach)."""
+    bodies = {
+        name: attack(
+            f"""
+            class Policy(Driver):
+                def attack(self, obs):
+                    ch = channel()
+                    seq = request_seq(ch)
+                    forge(ch, {frame})
+                    time.sleep(30)  # never answers otherwise
             """
+        )
+        for name, (frame, _) in FORGED.items()
+    }
+    inventory = attack(
+        """
         class Policy(Driver):
             def attack(self, obs):
-                shrink(FD_IN)
-                for seq in range(self.steps + 1, self.steps + 7):
-                    write_all(FD_OUT, encode(Kind.ACTION, np.zeros(2, np.float32), seq))
-                time.sleep(3600)  # and never read its input again
+                print("MEMFDS " + json.dumps(memfds()), flush=True)
         """
-        )
     )
-    detail = race_contained(SandboxedPolicy(bundle, QUICK), "invalid", within_s=120)
-    assert "before its request" in detail
+    bodies |= {"inventory-a": inventory, "inventory-b": inventory}
+    outcome, policies, _ = race_many(bodies, make_python_bundle, QUICK)
+    for name, (_, word) in FORGED.items():
+        status, reason, detail = outcome[name]
+        assert (status, reason) == ("dnf", "invalid"), (name, detail)
+        assert word in detail, (name, detail)
+    seen = []
+    for name in ("inventory-a", "inventory-b"):
+        assert outcome[name][0] == "finished", outcome[name]
+        line = next(x for x in policies[name].output.splitlines() if x.startswith("MEMFDS "))
+        regions = [r for r in json.loads(line[len("MEMFDS ") :]) if r[2] >= REPLY_BYTES]
+        assert len(regions) == 1, regions  # its channel, and no other car's
+        seen.append(regions[0][1])
+    assert seen[0] != seen[1]
 
 
-def test_a_policy_that_stops_reading_never_blocks_the_host_write(
-    mode: str, make_python_bundle: MakeBundle
-) -> None:
-    """It answers step 1 itself (a correctly numbered frame) and then neither returns nor
-    reads: the next observation (256 KiB, bigger than any pipe) must not block ``send``, and
-    ``receive`` gives up within the step deadline plus the bank."""
-    bundle = make_python_bundle(
-        attack(
-            """
-        class Policy:
-            def __init__(self):
-                self.steps = 0
-
-            def act(self, obs):
-                self.steps += 1
-                shrink(FD_IN)
-                write_all(FD_OUT, encode(Kind.ACTION, np.zeros(2, np.float32), self.steps + 1))
+TIMING = {
+    "rings-ahead": (  # wake-ups before its answer: the host is rung four times for one step
+        """
+        class Policy(Driver):
+            def attack(self, obs):
+                os.write(channel().bell, b"\\x01" * 3)
+        """,
+        "invalid",
+        "woke the host unasked",
+    ),
+    "bell-flood": (  # a thread rings without end (the issue's flood, on the bell)
+        """
+        class Policy(Driver):
+            def attack(self, obs):
+                bell = channel().bell
+                def ring():
+                    while True:
+                        os.write(bell, b"\\x01" * 4096)
+                threading.Thread(target=ring, daemon=True).start()
+        """,
+        "invalid",
+        "woke the host unasked",
+    ),
+    "never-rings": (  # the right answer in the slot, never rung in
+        """
+        class Policy(Driver):
+            def attack(self, obs):
+                ch = channel()
+                forge(ch, encode(Kind.ACTION, np.zeros(2, np.float32), request_seq(ch)), ring=False)
                 time.sleep(3600)
         """,
-        ),
-        driver=False,
-    )
-    with SandboxedPolicy(bundle, QUICK) as policy:
-        policy.reset(0)
-        np.testing.assert_array_equal(policy.act(np.zeros(8, np.float32)), [0.0, 0.0])
-        start = time.monotonic()
-        policy.send(np.zeros(1 << 16, np.float32))
-        assert time.monotonic() - start < 0.5  # the write did not wait for the reader
-        with pytest.raises(PolicyTimeout, match="stopped reading"):
-            policy.receive()
-        took = time.monotonic() - start
-        assert took < QUICK.step_deadline_s + QUICK.overage_s + 2.0
-
-
-def test_a_flood_of_tiny_valid_frames_is_invalid_and_costs_the_host_no_memory(
-    mode: str, make_python_bundle: MakeBundle
-) -> None:
-    """The issue's flood (a job went from 112 to 940 MiB): 2 million 16-byte OK frames. The
-    host keeps at most MAX_QUEUED of them, stops reading, and retires the car; without the
-    bound they would cost the host some 600 MB of frame objects."""
-    bundle = make_python_bundle(
-        attack(
-            """
+        "timeout",
+        "no action",
+    ),
+    "closes-channel": (  # closes both pipe ends and keeps running
+        """
         class Policy(Driver):
             def attack(self, obs):
-                chunk = encode(Kind.OK) * 4096
-                for _ in range(500):
-                    write_all(FD_OUT, chunk)
+                ch = channel()
+                os.close(ch.bell)
+                os.close(ch.ring)
+                time.sleep(3600)
+        """,
+        "invalid",
+        "closed its channel",
+    ),
+    "scribbler": (  # a thread writes garbage over its reply slot without end, from step 3
         """
-        )
-    )
-    policy = SandboxedPolicy(bundle, QUICK)
-    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB
-    detail = race_contained(policy, "invalid", within_s=120)
-    grown_mib = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before) / 1024
-    assert "flooding" in detail
-    assert grown_mib < 64, f"the host grew by {grown_mib:.0f} MiB"
-    assert len(policy._frames) <= MAX_QUEUED + 1  # the frames kept, plus the flood mark
-
-
-def test_the_reader_keeps_at_most_max_queued_frames_then_marks_the_flood() -> None:
-    """The bound itself, deterministically: 4096 valid frames in one read."""
-    frames: deque[tuple[float, object]] = deque()
-    flooded = threading.Event()
-    more = _queue_frames(FrameDecoder(), encode(Kind.OK) * 4096, 0.0, frames, flooded)
-    assert not more and flooded.is_set()
-    items = [item for _, item in frames]
-    assert len(items) == MAX_QUEUED + 1 and items[-1] is _FLOOD
-
-
-def test_a_malformed_frame_shape_is_invalid_not_a_silent_timeout(
-    mode: str, make_python_bundle: MakeBundle
-) -> None:
-    """A zero-size ACTION frame of shape (0, 2**63): numpy refuses to build it (ValueError),
-    which killed the host's reader thread, so the car was reported ``timeout`` 10 s later."""
-    bundle = make_python_bundle(
-        attack(
-            """
         class Policy(Driver):
             def attack(self, obs):
-                header = struct.pack("<2sBBBxHQ", b"SL", 5, 1, 2, self.steps + 1, 0)
-                os.write(FD_OUT, header + struct.pack("<QQ", 0, 1 << 63))
-                print("still printing after the bad frame", flush=True)
-                time.sleep(30)
+                ch = channel()
+                at = len(ch.memory) - REPLY_BYTES
+                def scribble():
+                    while True:
+                        ch.memory[at : at + 4096] = os.urandom(4096)
+                threading.Thread(target=scribble, daemon=True).start()
+        """,
+        "invalid",
+        "protocol",
+    ),
+    "past-the-region": (  # resize the sealed region; then read a mapping past its end
         """
-        )
-    )
-    policy = SandboxedPolicy(bundle, FAST_BANK)
-    detail = race_contained(policy, "invalid", within_s=60)
-    assert "shape" in detail
-    assert "still printing after the bad frame" in policy.output  # the reader lived on
-
-
-def test_a_forged_huge_frame_header_is_refused_at_once(
-    mode: str, make_python_bundle: MakeBundle
-) -> None:
-    """A header announcing a 1 TiB ACTION, then silence: refused from the header alone (the
-    host reads replies with a 64 KiB cap), not after the 30 s bank."""
-    bundle = make_python_bundle(
-        attack(
-            """
         class Policy(Driver):
             def attack(self, obs):
-                os.write(FD_OUT, struct.pack("<2sBBBxHQ", b"SL", 5, 1, 1, self.steps + 1, 1 << 40))
-                time.sleep(60)
-        """
-        )
-    )
-    detail = race_contained(SandboxedPolicy(bundle, FAST_BANK), "invalid", within_s=60)
-    assert "exceeds" in detail
+                ch = channel()
+                fd, _, size = next(r for r in memfds() if r[2] == len(ch.memory))
+                def tried(fn):
+                    try:
+                        fn()
+                    except OSError as err:
+                        return "refused:" + errno.errorcode.get(err.errno or 0, "?")
+                    except (ValueError, TypeError) as err:
+                        return "refused:" + type(err).__name__
+                    return "DONE"
+                print("ATTACKS " + json.dumps({
+                    "shrink": tried(lambda: os.ftruncate(fd, 0)),
+                    "grow": tried(lambda: os.ftruncate(fd, size * 4)),
+                    "fallocate": tried(lambda: os.posix_fallocate(fd, size, 1 << 20)),
+                    "resize": tried(lambda: ch.memory.resize(size * 4)),
+                }), flush=True)
+                libc = ctypes.CDLL(None, use_errno=True)
+                libc.mmap.restype = ctypes.c_void_p
+                c = ctypes
+                libc.mmap.argtypes = [c.c_void_p, c.c_size_t, c.c_int, c.c_int, c.c_int, c.c_long]
+                addr = libc.mmap(None, size * 4, 1, 1, fd, 0)  # PROT_READ, MAP_SHARED
+                print("MAPPED", addr not in (None, ctypes.c_void_p(-1).value), flush=True)
+                ctypes.string_at(addr + size * 2, 8)  # past the end of the file: SIGBUS
+        """,
+        "error",
+        "exited",
+    ),
+}
+
+
+@pytest.mark.slow
+def test_attacks_on_the_channel_are_contained(mode: str, make_python_bundle: MakeBundle) -> None:
+    """Wake-ups ahead of time, a flood of them, a reply never rung in, closed pipe ends,
+    garbage scribbled over the reply slot while the host reads it, and the sealed region
+    resized or mapped past its end: each retires its own car with the right reason (the
+    closed channel after EXIT_WAIT_S), the pursuit car finishes, the host never waits
+    longer than a deadline, and the region kept its size."""
+    bodies = {name: attack(body) for name, (body, _, _) in TIMING.items()}
+    outcome, policies, took = race_many(bodies, make_python_bundle, QUICK)
+    for name, (_, reason, word) in TIMING.items():
+        status, got, detail = outcome[name]
+        assert (status, got) == ("dnf", reason), (name, detail, policies[name].output[-1500:])
+        assert word in detail, (name, detail)
+    out = policies["past-the-region"].output
+    line = next(x for x in out.splitlines() if x.startswith("ATTACKS "))
+    results = json.loads(line[len("ATTACKS ") :])
+    assert all(v.startswith("refused") for v in results.values()), results
+    assert "MAPPED True" in out  # it did map past the end; only its own read faulted
+    assert took < 120 + EXIT_WAIT_S
 
 
 def test_a_policy_answering_just_under_the_deadline_is_cut_by_the_race_wall_clock(
@@ -300,7 +360,8 @@ def test_slow_answers_are_bounded_in_a_job_and_the_honest_car_finishes(tmp_path:
 @pytest.mark.slow
 def test_15_mib_of_error_text_is_capped_in_result_replay_and_logs(tmp_path: Path) -> None:
     """The issue's 15 MiB error (an 11 MiB public replay): raised as an exception (and so
-    printed as a traceback), and forged as one 15 MiB ERROR frame on the protocol pipe."""
+    printed as a traceback), and forged as the longest ERROR frame its reply slot holds
+    (16 KiB: a longer one is refused whole, see the forged replies above)."""
     raised = _zip(
         tmp_path,
         "raiser",
@@ -317,8 +378,10 @@ def test_15_mib_of_error_text_is_capped_in_result_replay_and_logs(tmp_path: Path
             """
         class Policy(Driver):
             def attack(self, obs):
-                text = np.frombuffer(b"y" * (15 << 20), np.uint8)
-                write_all(FD_OUT, encode(Kind.ERROR, text, self.steps + 1))
+                ch = channel()
+                text = np.frombuffer(b"y" * (REPLY_BYTES - 24), np.uint8)
+                forge(ch, encode(Kind.ERROR, text, request_seq(ch)))
+                time.sleep(30)
         """,
         ),
     )
@@ -334,7 +397,8 @@ def test_15_mib_of_error_text_is_capped_in_result_replay_and_logs(tmp_path: Path
     res = run_race_job(job)
     raiser, forger, honest = res.result["cars"]
     assert (raiser["status"], raiser["dnf_reason"]) == ("dnf", "error")
-    assert (forger["status"], forger["dnf_reason"]) == ("dnf", "invalid")
+    assert (forger["status"], forger["dnf_reason"]) == ("dnf", "error")
+    assert "yyyy" in forger["dnf_detail"]
     assert honest["status"] == "finished"
     assert raiser["dnf_detail"].startswith("PolicyCrash") and "xxxx" in raiser["dnf_detail"]
     for car in (raiser, forger):
