@@ -63,7 +63,7 @@ from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices, VecEnvS
 from agents.baselines import make_baseline
 from agents.policy import Policy, PolicyError
 from arena.env import RacingEnv
-from tracks import TrackError
+from tracks import Track, TrackError
 from tracks.generator import generate_track
 
 ObsArray = NDArray[np.float32]
@@ -208,11 +208,35 @@ class Procedural:
         length: range of lap lengths, m.
         difficulty: range of :func:`tracks.generator.generate_track` difficulties (0–1:
             twistier and narrower towards 1).
+        hairpin: range of the hairpin radius, m, of real-track-like generated tracks
+            (``generate_track(hairpin=...)``: bends tighter than the road's half-width, the
+            inside narrowed as the importers narrow real files); None: ordinary tracks.
     """
 
     share: float = 0.0
     length: tuple[float, float] = (60.0, 160.0)
     difficulty: tuple[float, float] = (0.2, 0.8)
+    hairpin: tuple[float, float] | None = None
+
+    def draw(self, rng: np.random.Generator, attempts: int = 20) -> Track:
+        """A generated track with its seed, length, difficulty (and hairpin) drawn from ``rng``.
+
+        Raises:
+            PolicyError: the generator gave up on ``attempts`` draws in a row (ranges too
+                tight for any circuit).
+        """
+        for _ in range(attempts):  # a draw with no valid circuit is rare: try the next seed
+            seed = int(rng.integers(2**31 - 1))
+            length = float(rng.uniform(*self.length))
+            difficulty = float(rng.uniform(*self.difficulty))
+            hairpin = None if self.hairpin is None else float(rng.uniform(*self.hairpin))
+            try:
+                return generate_track(seed, length, difficulty, hairpin)
+            except TrackError:
+                continue
+        raise PolicyError(
+            f"no valid generated track in {attempts} draws; widen the procedural ranges"
+        )
 
 
 @dataclass
@@ -320,17 +344,8 @@ class SelfPlayVecEnv(VecEnv):
 
     def _generated_env(self, rng: np.random.Generator) -> RacingEnv:
         """An env on a new generated track (redrawn if the generator gives up)."""
-        p = self.procedural
-        while True:
-            try:
-                track = generate_track(
-                    int(rng.integers(2**31)),
-                    length=float(rng.uniform(*p.length)),
-                    difficulty=float(rng.uniform(*p.difficulty)),
-                )
-            except TrackError:
-                continue
-            return RacingEnv(track=track, n_cars=self.n_cars, laps=self.laps, **self.env_kwargs)
+        track = self.procedural.draw(rng)
+        return RacingEnv(track=track, n_cars=self.n_cars, laps=self.laps, **self.env_kwargs)
 
     def _reset_copy(self, k: int, seed: int | None = None) -> None:
         """Start a new episode in copy ``k``: draw track, start, direction, opponents."""

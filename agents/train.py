@@ -115,6 +115,10 @@ class TrainArgs:
     """lap length range of generated tracks, m (min max)"""
     procedural_difficulty: list[float] = field(default_factory=lambda: [0.2, 0.8])
     """difficulty range of generated tracks, 0-1 (min max): twistier and narrower towards 1"""
+    procedural_hairpin: list[float] = field(default_factory=list)
+    """hairpin radius range of generated tracks, m (min max): real-track-like tightness, bends
+    tighter than the half-width with the inside narrowed (tracks.generator hairpin=; the
+    F1TENTH race tracks have 0.4-1.1 m); empty: ordinary generated tracks"""
     train_laps: int = 1
     """laps per training episode"""
     randomise: bool = True
@@ -261,9 +265,9 @@ def _check(args: TrainArgs) -> None:
             raise PolicyError(f"{name} must be at least 1, got {getattr(args, name)}")
     if args.n_learners > args.n_cars:
         raise PolicyError(f"n_learners ({args.n_learners}) exceeds n_cars ({args.n_cars})")
-    for name in ("procedural_length", "procedural_difficulty"):
+    for name in ("procedural_length", "procedural_difficulty", "procedural_hairpin"):
         pair = getattr(args, name)
-        if len(pair) != 2 or pair[0] > pair[1]:
+        if (pair or name != "procedural_hairpin") and (len(pair) != 2 or pair[0] > pair[1]):
             raise PolicyError(f"{name} takes two numbers, min then max; got {pair}")
     if not 0.0 <= args.procedural <= 1.0:
         raise PolicyError(f"procedural is a share in [0, 1], got {args.procedural}")
@@ -564,7 +568,8 @@ def _batch_vec_env(
     seed = args.seed if seed is None else seed
     groups = procedural_groups(args) if procedural else 0
     rng = np.random.default_rng([seed, 7])
-    generated = [_draw_track(args, rng) for _ in range(groups)]
+    procedural = procedural_of(args)
+    generated = [procedural.draw(rng) for _ in range(groups)]
     fixed = [] if args.procedural >= 1.0 and groups else list(args.tracks)
     return BatchVecEnv(
         [*fixed, *generated],
@@ -599,23 +604,20 @@ def procedural_groups(args: TrainArgs) -> int:
     return max(1, round(p / (1.0 - p) * n))
 
 
-def _draw_track(args: TrainArgs, rng: np.random.Generator) -> Any:
-    """A generated track with length and difficulty drawn from the ``--procedural-*`` ranges."""
-    from tracks import TrackError  # noqa: PLC0415 - heavy, imported on use
-    from tracks.generator import generate_track  # noqa: PLC0415 - heavy, imported on use
+def procedural_of(args: TrainArgs) -> Any:
+    """The :class:`agents.selfplay.Procedural` of ``--procedural*`` (share and ranges)."""
+    from agents.selfplay import Procedural  # noqa: PLC0415 - heavy, imported on use
 
-    lo, hi = args.procedural_length
-    d_lo, d_hi = args.procedural_difficulty
-    for _ in range(20):  # a draw with no valid circuit is rare: try the next seed
-        try:
-            return generate_track(
-                int(rng.integers(0, 2**31 - 1)),
-                float(rng.uniform(lo, hi)),
-                float(rng.uniform(d_lo, d_hi)),
-            )
-        except TrackError:
-            continue
-    raise PolicyError("no valid generated track in 20 draws; widen --procedural-length")
+    return Procedural(
+        share=args.procedural,
+        length=(args.procedural_length[0], args.procedural_length[1]),
+        difficulty=(args.procedural_difficulty[0], args.procedural_difficulty[1]),
+        hairpin=(
+            (args.procedural_hairpin[0], args.procedural_hairpin[1])
+            if args.procedural_hairpin
+            else None
+        ),
+    )
 
 
 def procedural_callback(args: TrainArgs, vec_env: Any) -> Any:
@@ -636,6 +638,7 @@ def procedural_callback(args: TrainArgs, vec_env: Any) -> Any:
     n_base = n_views // 2 if args.randomise else n_views
     first = n_base - groups  # generated groups come after the fixed tracks
     rng = np.random.default_rng([args.seed, 11])
+    procedural = procedural_of(args)
 
     class Redraw(BaseCallback):
         def __init__(self) -> None:
@@ -653,7 +656,7 @@ def procedural_callback(args: TrainArgs, vec_env: Any) -> Any:
             if self.rollouts % every:
                 return
             g = first + len(self.drawn) % groups
-            track = _draw_track(args, rng)
+            track = procedural.draw(rng)
             self.drawn.append(track.name)
             views = [(g, track)] + ([(g + n_base, track.reversed())] if args.randomise else [])
             for k, view in views:
@@ -700,7 +703,6 @@ def main(args: TrainArgs) -> dict[str, Any]:
     from agents.loading import load_policy  # noqa: PLC0415 - heavy, imported on use
     from agents.selfplay import (  # noqa: PLC0415 - heavy, imported on use
         OpponentPool,
-        Procedural,
         SelfPlayVecEnv,
         parse_mix,
     )
@@ -742,11 +744,7 @@ def main(args: TrainArgs) -> dict[str, Any]:
             randomise=args.randomise,
             reward_scale=args.reward_scale,
             dnf_penalty=args.dnf_penalty,
-            procedural=Procedural(
-                share=args.procedural,
-                length=(args.procedural_length[0], args.procedural_length[1]),
-                difficulty=(args.procedural_difficulty[0], args.procedural_difficulty[1]),
-            ),
+            procedural=procedural_of(args),
             seed=args.seed,
             env_kwargs=train_env_kwargs,
         )
@@ -792,6 +790,7 @@ def main(args: TrainArgs) -> dict[str, Any]:
         "procedural": args.procedural,
         "procedural_length": args.procedural_length,
         "procedural_difficulty": args.procedural_difficulty,
+        "procedural_hairpin": args.procedural_hairpin,
         "n_envs": args.n_envs,
         "n_cars": args.n_cars,
         "n_learners": args.n_learners,

@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-ARMS = ("nominal", "sample", "adversarial")
+ARMS = ("nominal", "sample", "adversarial", "robust_mg")
 TRAIN_TRACKS = ("oval", "hairpins", "chicanes", "bean", "technical", "speedway")
 EVAL_TRACKS = ("monza", "spielberg", "random:9001", "random:9002")
 SMALL_GRID = {

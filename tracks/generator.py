@@ -47,7 +47,7 @@ import numpy as np
 
 from tracks.errors import TrackError
 from tracks.geometry import FloatArray, Track
-from tracks.validation import grid_fits, validate_track
+from tracks.validation import fit_widths, grid_fits, validate_track
 
 MIN_LENGTH = 30.0  # m: shortest lap on offer
 MAX_LENGTH = 300.0  # m: longest lap on offer
@@ -69,6 +69,11 @@ CALMING = (0.0, 0.25, 0.5, 0.75, 1.0)  # blends towards a regular polygon, tried
 GRID_CARS = 8  # the start grid that must fit
 GRID_WINDOW = (6.0, 1.0)  # m behind / ahead of the start line that should be straight
 MAX_ATTEMPTS = 20  # fresh shapes (each tried at every calming level) before giving up
+# Real-track-like tightness (``hairpin=R``): the F1TENTH race tracks (1/10 scale, a constant
+# 1.1 m half-width) have hairpins of 0.4-1.1 m centre-line radius, tighter than their
+# half-width and than the car's 0.74 m full-lock radius; their importer narrows the inside.
+HAIRPIN_RANGE = (0.3, 5.0)  # m: the smallest bend radius a hairpin track may ask for
+HAIRPIN_SHARE = 0.35  # share of a hairpin track's bends drawn near the hairpin radius
 
 
 def _lerp(range_: tuple[float, float], difficulty: float) -> float:
@@ -82,19 +87,23 @@ def road_width(difficulty: float) -> float:
     return _lerp((WIDTH_EASY, WIDTH_HARD), difficulty)
 
 
-def random_spec(seed: int, length: float, difficulty: float) -> str:
+def random_spec(seed: int, length: float, difficulty: float, hairpin: float | None = None) -> str:
     """The ``random:`` name that :func:`tracks.load_track` resolves to this track.
 
     >>> random_spec(7, 60.0, 0.8)
     'random:7:length=60,difficulty=0.8'
     >>> random_spec(7, DEFAULT_LENGTH, DEFAULT_DIFFICULTY)
     'random:7'
+    >>> random_spec(7, 200.0, 0.8, hairpin=0.6)
+    'random:7:length=200,difficulty=0.8,hairpin=0.6'
     """
     opts = []
     if length != DEFAULT_LENGTH:
         opts.append(f"length={_number(length)}")
     if difficulty != DEFAULT_DIFFICULTY:
         opts.append(f"difficulty={_number(difficulty)}")
+    if hairpin is not None:
+        opts.append(f"hairpin={_number(hairpin)}")
     return f"random:{seed}" + (":" + ",".join(opts) if opts else "")
 
 
@@ -104,7 +113,7 @@ def _number(x: float) -> str:
     return short if float(short) == x else repr(float(x))
 
 
-def _check_arguments(seed: int, length: float, difficulty: float) -> None:
+def _check_arguments(seed: int, length: float, difficulty: float, hairpin: float | None) -> None:
     if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
         raise TrackError(f"random track seed must be a non-negative integer, got {seed!r}")
     if not MIN_LENGTH <= length <= MAX_LENGTH:  # also rejects NaN
@@ -114,6 +123,11 @@ def _check_arguments(seed: int, length: float, difficulty: float) -> None:
         )
     if not 0.0 <= difficulty <= 1.0:
         raise TrackError(f"random track difficulty must be between 0 and 1, got {difficulty:g}")
+    if hairpin is not None and not HAIRPIN_RANGE[0] <= hairpin <= HAIRPIN_RANGE[1]:
+        raise TrackError(
+            f"random track hairpin radius must be between {HAIRPIN_RANGE[0]:g} and "
+            f"{HAIRPIN_RANGE[1]:g} m, got {hairpin:g}"
+        )
 
 
 @dataclass(frozen=True)
@@ -231,15 +245,20 @@ def _straightest_start(track: Track) -> float:
     return float(track.s[int(np.argmin(peak))])
 
 
-def _attempt(rng: np.random.Generator, seed: int, length: float, difficulty: float) -> Track | None:
+def _attempt(
+    rng: np.random.Generator, seed: int, length: float, difficulty: float, hairpin: float | None
+) -> Track | None:
     """One candidate circuit, or None when it fails a check even when calmed down."""
     half = 0.5 * road_width(difficulty)
     shape = _Shape.draw(rng, length, difficulty)
-    min_radius = BEND_RADIUS_MIN * half
+    min_radius = BEND_RADIUS_MIN * half if hairpin is None else hairpin
     max_radius = max(_lerp(BEND_RADIUS_MAX, difficulty), 1.2 * min_radius)
+    bends = shape.bends
+    if hairpin is not None:  # a share of the bends squeezed towards the hairpin radius
+        bends = np.where(bends < HAIRPIN_SHARE, 0.1 * bends / HAIRPIN_SHARE, bends)
     for calm in CALMING:
         vertices = shape.polygon(calm)
-        spread = shape.bends + calm * (1.0 - shape.bends)  # calmer: wider bends
+        spread = bends + calm * (1.0 - bends)  # calmer: wider bends
         fit = _fit_bends(
             vertices, min_radius + (max_radius - min_radius) * spread, length, min_radius
         )
@@ -249,30 +268,65 @@ def _attempt(rng: np.random.Generator, seed: int, length: float, difficulty: flo
         if shape.clockwise:
             points = points[::-1]
         points *= length / Track(points, half, half, validate=False).length  # spline vs arcs
-        # Checks on a wider road keep radius and clearance margins; the centre line is the same.
-        wide = Track(points, SAFETY * half, SAFETY * half, validate=False)
-        try:
-            validate_track(wide)
-        except TrackError:
-            continue
-        track = Track(
-            points,
-            half,
-            half,
-            name=random_spec(seed, length, difficulty),
-            description=(
-                f"Procedurally generated circuit: seed {seed}, length {length:g} m, "
-                f"difficulty {difficulty:g}, road {2 * half:g} m wide."
-            ),
-            start_s=_straightest_start(wide),
+        description = (
+            f"Procedurally generated circuit: seed {seed}, length {length:g} m, "
+            f"difficulty {difficulty:g}, road {2 * half:g} m wide"
         )
+        name = random_spec(seed, length, difficulty, hairpin)
+        if hairpin is None:
+            # Checks on a wider road keep radius and clearance margins; same centre line.
+            wide = Track(points, SAFETY * half, SAFETY * half, validate=False)
+            try:
+                validate_track(wide)
+            except TrackError:
+                continue
+            track = Track(
+                points,
+                half,
+                half,
+                name=name,
+                description=description + ".",
+                start_s=_straightest_start(wide),
+            )
+        else:
+            found = _hairpin_track(points, half, name, description, hairpin)
+            if found is None:
+                continue
+            track = found
         if grid_fits(track, GRID_CARS):
             return track
     return None
 
 
+def _hairpin_track(
+    points: FloatArray, half: float, name: str, description: str, hairpin: float
+) -> Track | None:
+    """The road around ``points`` built as a real track file is imported, or None.
+
+    A constant half-width, narrowed by :func:`tracks.validation.fit_widths` where a bend or
+    a facing stretch of road leaves no room (as the F1TENTH importer does), then checked as
+    it is: no safety margin, since the narrowing already keeps 10 % of each bend's radius.
+    """
+    fitted, _ = fit_widths(Track(points, half, half, validate=False))
+    try:
+        return Track(
+            fitted.centre,
+            fitted.width_left,
+            fitted.width_right,
+            smooth=False,
+            name=name,
+            description=f"{description}, hairpins down to {hairpin:g} m (inside narrowed).",
+            start_s=_straightest_start(fitted),
+        )
+    except TrackError:
+        return None
+
+
 def generate_track(
-    seed: int, length: float = DEFAULT_LENGTH, difficulty: float = DEFAULT_DIFFICULTY
+    seed: int,
+    length: float = DEFAULT_LENGTH,
+    difficulty: float = DEFAULT_DIFFICULTY,
+    hairpin: float | None = None,
 ) -> Track:
     """A random closed circuit, the same one for the same arguments.
 
@@ -280,6 +334,11 @@ def generate_track(
         seed: non-negative integer; the only source of randomness.
         length: lap length along the centre line, m, in ``[30, 300]``.
         difficulty: ``0`` (few gentle corners, 4 m road) to ``1`` (many tight corners, 2 m road).
+        hairpin: real-track-like tightness: about a third of the bends are drawn down to this
+            radius (m), tighter than the half-width (as on the F1TENTH race tracks, whose
+            hairpins are 0.4-1.1 m), and the inside of the road is narrowed there as the
+            importers narrow real files (:func:`tracks.validation.fit_widths`). None: every
+            bend is at least 1.7 half-widths and the road keeps its width.
 
     Returns:
         A validated :class:`Track` named ``random:<seed>[:options]`` with its start line on the
@@ -292,11 +351,12 @@ def generate_track(
     >>> track.name, round(track.length)
     ('random:3:length=60,difficulty=0.2', 60)
     """
-    _check_arguments(seed, length, difficulty)
+    _check_arguments(seed, length, difficulty, hairpin)
     length, difficulty = float(length), float(difficulty)
+    hairpin = None if hairpin is None else float(hairpin)
     for attempt in range(MAX_ATTEMPTS):
         rng = np.random.default_rng(seed if attempt == 0 else (int(seed), attempt))
-        track = _attempt(rng, int(seed), length, difficulty)
+        track = _attempt(rng, int(seed), length, difficulty, hairpin)
         if track is not None:
             return track
     raise TrackError(

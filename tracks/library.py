@@ -40,9 +40,10 @@ def parse_random_spec(spec: str) -> tuple[int, dict[str, float]]:
     params: dict[str, float] = {}
     for item in filter(None, opts.split(",")):
         key, eq, value = item.partition("=")
-        if not eq or key not in ("length", "difficulty"):
+        if not eq or key not in ("length", "difficulty", "hairpin"):
             raise TrackError(
-                f"bad random track option {item!r}; use length=<m> and/or difficulty=<0..1>"
+                f"bad random track option {item!r}; use length=<m>, difficulty=<0..1> "
+                "and/or hairpin=<m>"
             )
         try:
             params[key] = float(value)

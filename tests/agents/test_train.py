@@ -200,3 +200,22 @@ def test_tiny_training_run_produces_a_loadable_checkpoint(tmp_path: Path) -> Non
         env.close()
     assert action.shape == (2,)
     assert np.all(np.isfinite(action)) and np.all(np.abs(action) <= 1.0)
+
+
+def test_procedural_draws_hairpin_tracks_from_its_range() -> None:
+    """`--procedural-hairpin 0.6 0.9`: every generated training track has real-track hairpins."""
+    rng = np.random.default_rng(4)
+    plain = Procedural(share=1.0, length=(150.0, 200.0), difficulty=(0.7, 0.9))
+    tight = Procedural(share=1.0, length=(150.0, 200.0), difficulty=(0.7, 0.9), hairpin=(0.6, 0.9))
+    for _ in range(2):
+        assert (1.0 / np.abs(plain.draw(rng).curvature)).min() > 1.0
+        track = tight.draw(rng)
+        assert "hairpin=" in track.name
+        assert (1.0 / np.abs(track.curvature)).min() < 1.0
+
+
+def test_procedural_hairpin_range_is_checked() -> None:
+    from agents.train import _check
+
+    with pytest.raises(PolicyError, match="procedural_hairpin"):
+        _check(TrainArgs(procedural_hairpin=[0.9]))
