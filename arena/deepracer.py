@@ -12,9 +12,11 @@ and the DeepRacer simulation (aws-deepracer-community/deepracer-simapp,
 key                         here
 =========================== =============================================================
 ``waypoints``               the track file's own centre points for tracks imported from a
-                            DeepRacer ``.npy`` (``Track.waypoints``), closed (first ==
-                            last), in driving order (reversed when the episode runs
-                            reversed, as DeepRacer reverses its centre line); other tracks:
+                            DeepRacer ``.npy`` (``Track.waypoints``: every row, a repeated
+                            row included, as the simulator's ``LinearRing`` keeps it, so
+                            indices match DeepRacer's), closed (first == last), in driving
+                            order (reversed when the episode runs reversed, as DeepRacer
+                            reverses its centre line); other tracks:
                             centre-line points about every 0.5 m, closed the same way
 ``closest_waypoints``       ``[prev, next]`` indices into ``waypoints`` of the points behind
                             and ahead of the car along the lap (``next`` may be the closing

@@ -339,7 +339,8 @@ def read_deepracer(
     half-width is the distance from the smoothed centre line to the file's own border
     polyline on that side (which column is left is read from the geometry). Repeated rows
     (DeepRacer files close the loop by repeating the first, and several repeat another) are
-    dropped; the file's centre points are kept as ``track.waypoints`` (DeepRacer's
+    dropped from the geometry; the file's centre points, every row as published (repeats
+    included, so indices match DeepRacer's), are kept as ``track.waypoints`` (DeepRacer's
     ``params["waypoints"]``). ``direction`` only breaks the tie for files whose loop
     orientation cannot be read.
     """
@@ -357,6 +358,10 @@ def read_deepracer(
             f"got shape {arr.shape} dtype {arr.dtype}"
         )
     arr = arr.astype(np.float64) * opts.scale
+    # DeepRacer's params["waypoints"] are every centre row of the file, repeats included
+    # (deepracer-simapp markov/track_geom/track_data.py: list(LinearRing(rows[:, 0:2]).coords)),
+    # so reward functions keyed to waypoint indices see the same indices here.
+    file_points = arr[:, 0:2].copy()
     notes: list[str] = []
     arr = _without_repeats(arr, notes)
     centre, first, second = arr[:, 0:2], arr[:, 2:4], arr[:, 4:6]
@@ -384,7 +389,7 @@ def read_deepracer(
             description=f"imported from DeepRacer waypoints {path.name}",
             options=opts,
             notes=notes,
-            waypoints=centre,
+            waypoints=file_points,
             borders=borders,
         )
     except TrackError as err:

@@ -271,6 +271,7 @@ def test_deepracer_track_waypoints_are_the_files_points(tmp_path: Path) -> None:
     tan = np.roll(pts, -1, axis=0) - np.roll(pts, 1, axis=0)
     n = np.column_stack([-tan[:, 1], tan[:, 0]]) / np.linalg.norm(tan, axis=1)[:, None]
     rows = np.column_stack([pts, pts + 1.2 * n, pts - 1.2 * n])
+    rows = np.insert(rows, 9, rows[9], axis=0)  # a repeated row, as in Fumiaki's file
     path = tmp_path / "Oval_track.npy"
     np.save(path, np.vstack([rows, rows[:1]]))
     fn = AllExamples()
@@ -282,7 +283,8 @@ def test_deepracer_track_waypoints_are_the_files_points(tmp_path: Path) -> None:
         for _ in range(60):
             obs, *_ = env.step({a: drive(obs[a]) for a in env.agents})
         wp = np.array(fn.seen[-1]["waypoints"])
-        expected = np.vstack([pts, pts[:1]])
+        # every row of the file, the repeat included: DeepRacer's indices
+        expected = np.vstack([rows, rows[:1]])[:, :2]
         np.testing.assert_allclose(wp, expected if direction == "forward" else expected[::-1])
         for p in fn.seen:
             prev, nxt = p["closest_waypoints"]
