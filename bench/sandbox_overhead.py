@@ -1,22 +1,29 @@
 """Sandbox overhead: per-step cost of a sandboxed policy, and races per minute with 4 of them.
 
-1. **Per step.** Observations are recorded from a pursuit car driving the track; then the
-   same pursuit policy answers them in-process (``policy.act``) and from a sandbox (a python
-   bundle that wraps the baseline, :class:`submissions.remote.SandboxedPolicy`), and a
-   sandboxed policy that only returns zeros gives the round trip alone (pipes, frames,
-   checks). The figure is a ratio from one run: sandboxed / in-process time per step. On a
-   shared, loaded machine the three are timed interleaved, in ``--blocks`` blocks each (one
-   block of each in turn), and each figure is the median of its blocks' means, so a burst
-   of load elsewhere hits all three alike.
-2. **Races per minute.** One-lap races with four sandboxed pursuit cars, against the same
-   race with four in-process pursuit cars, two ways: ``fresh`` (each race starts four
-   sandboxes, loads the policies, races, kills them) and ``pooled`` (the races of the run
-   are one batch: :class:`submissions.remote.SandboxPool` keeps the four sandboxes between
-   races, as :func:`submissions.jobs.run_race_jobs` does). On a 2-core machine the four
-   workers share the cores with the simulator.
+Every figure comes from ONE run in which in-process and sandboxed work alternate, so a burst
+of load elsewhere on a shared machine hits all of them alike; each sandbox mode asked for
+(``--modes bwrap seccomp``; one that cannot run here is skipped) is measured in the same
+run, against the same in-process figures.
 
-Each figure is per sandbox mode (``--modes bwrap seccomp``; a mode that cannot run here is
-skipped). Nothing is pinned: the sandboxed worker is a second process by design.
+1. **Per step.** Observations are recorded from a pursuit car driving the track; then the
+   same pursuit policy answers them in-process (``policy.act``) and from a sandbox of each
+   mode (a python bundle that wraps the baseline, :class:`submissions.remote.SandboxedPolicy`),
+   and a sandboxed policy that only returns zeros gives each mode's round trip alone (the
+   shared-memory channel, its wake-ups and the checks). The observations are timed in
+   ``--blocks`` blocks, one block of each policy in turn; each figure is the median of its
+   blocks' means, and the ratio is sandboxed / in-process time per step.
+2. **Races per minute.** One-lap races with four pursuit cars: in-process, and for each mode
+   four sandboxed cars two ways: ``fresh`` (each race starts four sandboxes, loads the
+   policies, races, kills them) and ``pooled`` (the ``--races`` races are one batch:
+   :class:`submissions.remote.SandboxPool` keeps the four sandboxes between races, as
+   :func:`submissions.jobs.run_race_jobs` does; the batch's figure includes the pool's
+   start-up, paid in its first race). Races alternate: for each seed an in-process race,
+   then each mode's fresh and pooled race. As in every race, the sandboxes start before the
+   track and the simulator are built (:func:`arena.race.run_race`), so their start-up
+   overlaps that work. On a 2-core machine the four workers share the cores with the
+   simulator.
+
+Nothing is pinned: the sandboxed worker is a second process by design.
 
 Usage::
 
@@ -103,11 +110,24 @@ def time_per_step(policy: Any, observations: list[Any]) -> float:
     return (time.perf_counter() - start) / len(observations)
 
 
+def _in_mode(mode: str, make: Any) -> Any:
+    """``make()`` with ``SANDBOX=mode`` (a policy takes its mode when it is made)."""
+    before = os.environ.get("SANDBOX")
+    os.environ["SANDBOX"] = mode
+    try:
+        return make()
+    finally:
+        if before is None:
+            os.environ.pop("SANDBOX", None)
+        else:
+            os.environ["SANDBOX"] = before
+
+
 def per_step(
-    folder: Path, track: str, steps: int, limits: Any, blocks: int = 10
-) -> dict[str, float]:
-    """In-process, sandboxed and round-trip-only seconds per step (medians of interleaved
-    blocks, after a reset and 20 warm-up steps each), and the ratio."""
+    folder: Path, track: str, steps: int, limits: Any, modes: list[str], blocks: int = 10
+) -> dict[str, Any]:
+    """Seconds per step in-process, and per mode sandboxed and round-trip-only (medians of
+    interleaved blocks, after a reset and 20 warm-up steps each), with the ratios."""
     import statistics
 
     from agents.baselines import make_baseline
@@ -117,116 +137,125 @@ def per_step(
     observations = record_observations(track, steps)
     chunk = max(1, len(observations) // blocks)
     parts = [observations[i : i + chunk] for i in range(0, len(observations), chunk)]
-    with (
-        SandboxedPolicy(_bundle(folder, "pursuit_boxed", PURSUIT_SOURCE), limits) as boxed,
-        SandboxedPolicy(_bundle(folder, "zeros_boxed", ZERO_SOURCE), limits) as zeros,
-    ):
-        policies = [make_baseline("pursuit", DEFAULT_LAYOUT), boxed, zeros]
-        times: list[list[float]] = [[], [], []]
-        for policy in policies:
+    pursuit = _bundle(folder, "pursuit_boxed", PURSUIT_SOURCE)
+    zeros = _bundle(folder, "zeros_boxed", ZERO_SOURCE)
+    policies: dict[str, Any] = {"in_process": make_baseline("pursuit", DEFAULT_LAYOUT)}
+    for mode in modes:
+        policies[f"{mode}/pursuit"] = _in_mode(mode, lambda: SandboxedPolicy(pursuit, limits))
+        policies[f"{mode}/zeros"] = _in_mode(mode, lambda: SandboxedPolicy(zeros, limits))
+    try:
+        for policy in policies.values():  # start them all, then wait: they load in parallel
+            getattr(policy, "start", lambda: None)()
+        for policy in policies.values():
             policy.reset(0)
             for obs in observations[:20]:
                 policy.act(obs)
+        times: dict[str, list[float]] = {key: [] for key in policies}
         for part in parts:
-            for policy, out in zip(policies, times, strict=True):
-                out.append(time_per_step(policy, part))
-    in_process, sandboxed, round_trip = (statistics.median(t) for t in times)
-    return {
-        "in_process_us": in_process * 1e6,
-        "sandboxed_us": sandboxed * 1e6,
-        "round_trip_us": round_trip * 1e6,
-        "overhead_us": (sandboxed - in_process) * 1e6,
-        "ratio": sandboxed / in_process,
-    }
+            for key, policy in policies.items():
+                times[key].append(time_per_step(policy, part))
+    finally:
+        for policy in policies.values():
+            getattr(policy, "close", lambda: None)()
+    median = {key: statistics.median(t) for key, t in times.items()}
+    in_process = median["in_process"]
+    out: dict[str, Any] = {"in_process_us": in_process * 1e6}
+    for mode in modes:
+        boxed, trip = median[f"{mode}/pursuit"], median[f"{mode}/zeros"]
+        out[mode] = {
+            "sandboxed_us": boxed * 1e6,
+            "round_trip_us": trip * 1e6,
+            "overhead_us": (boxed - in_process) * 1e6,
+            "ratio": boxed / in_process,
+        }
+    return out
 
 
-def races_per_minute(folder: Path, track: str, races: int, limits: Any) -> dict[str, float]:
-    """One-lap races with 4 sandboxed pursuit cars (fresh, pooled) vs 4 in-process ones."""
+def races_per_minute(
+    folder: Path, track: str, races: int, limits: Any, modes: list[str]
+) -> dict[str, Any]:
+    """One-lap races with 4 in-process pursuit cars, and per mode with 4 sandboxed ones
+    (fresh, pooled), alternating race by race."""
     from agents.baselines import make_baseline
     from agents.loading import DEFAULT_LAYOUT
     from arena.race import run_race
-    from submissions.remote import SandboxedPolicy
-
-    try:
-        from submissions import remote
-
-        pool_class: Any = remote.SandboxPool
-    except AttributeError:  # an older checkout, measured for comparison: no pooled figure
-        pool_class = None
+    from submissions.remote import SandboxedPolicy, SandboxPool
 
     bundle = _bundle(folder, "pursuit_race", PURSUIT_SOURCE)
-    start = time.perf_counter()
-    for seed in range(races):
-        run_race(
-            [make_baseline("pursuit", DEFAULT_LAYOUT) for _ in range(4)], track=track, seed=seed
-        )
-    in_process = time.perf_counter() - start
-    start = time.perf_counter()
-    statuses: list[str] = []
-    for seed in range(races):
-        cars = [SandboxedPolicy(bundle, limits) for _ in range(4)]
-        result, _ = run_race(cars, track=track, seed=seed)
-        statuses += [c.status for c in result.cars]
-    sandboxed = time.perf_counter() - start
-    pooled = float("nan")
-    if pool_class is not None:
+    spent = {"in_process": 0.0} | {f"{m}/{k}": 0.0 for m in modes for k in ("fresh", "pooled")}
+    statuses: dict[str, list[str]] = {m: [] for m in modes}
+    pools = {mode: SandboxPool() for mode in modes}
+
+    def timed(key: str, cars: list[Any], seed: int) -> list[str]:
         start = time.perf_counter()
-        with pool_class() as pool:
-            for seed in range(races):
-                cars = [pool.policy(bundle, limits) for _ in range(4)]
-                result, _ = run_race(cars, track=track, seed=seed)
-                statuses += [c.status for c in result.cars]
-        pooled = time.perf_counter() - start
-    return {
-        "races": races,
-        "in_process_races_per_min": 60 * races / in_process,
-        "sandboxed_races_per_min": 60 * races / sandboxed,
-        "pooled_races_per_min": 60 * races / pooled,
-        "sandboxed_s_per_race": sandboxed / races,
-        "fresh_ratio": in_process / sandboxed,
-        "pooled_ratio": in_process / pooled,
-        "finished_fraction": statuses.count("finished") / len(statuses),
-    }
+        result, _ = run_race(cars, track=track, seed=seed)
+        spent[key] += time.perf_counter() - start
+        return [c.status for c in result.cars]
+
+    try:
+        for seed in range(races):
+            timed("in_process", [make_baseline("pursuit", DEFAULT_LAYOUT) for _ in range(4)], seed)
+            for mode in modes:
+                fresh = _in_mode(mode, lambda: [SandboxedPolicy(bundle, limits) for _ in range(4)])
+                statuses[mode] += timed(f"{mode}/fresh", fresh, seed)
+                pool = pools[mode]
+                pooled = _in_mode(
+                    mode, lambda pool=pool: [pool.policy(bundle, limits) for _ in range(4)]
+                )
+                statuses[mode] += timed(f"{mode}/pooled", pooled, seed)
+    finally:
+        for pool in pools.values():
+            pool.close()
+    in_process = 60 * races / spent["in_process"]
+    out: dict[str, Any] = {"races": races, "in_process_races_per_min": in_process}
+    for mode in modes:
+        fresh = 60 * races / spent[f"{mode}/fresh"]
+        pooled = 60 * races / spent[f"{mode}/pooled"]
+        out[mode] = {
+            "fresh_races_per_min": fresh,
+            "pooled_races_per_min": pooled,
+            "fresh_ratio": fresh / in_process,
+            "pooled_ratio": pooled / in_process,
+            "finished_fraction": statuses[mode].count("finished") / len(statuses[mode]),
+        }
+    return out
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
-    """Measure each mode; the JSON document."""
-    from submissions import sandbox
+    """Measure every mode that runs here, interleaved; the JSON document."""
     from submissions.errors import SandboxError
-    from submissions.sandbox import SandboxLimits, sandbox_mode
-
-    weak_env = getattr(sandbox, "WEAK_ENV", "SLIPSTREAM_ALLOW_WEAK_SANDBOX")  # older checkouts
+    from submissions.sandbox import WEAK_ENV, SandboxLimits, sandbox_mode
 
     limits = SandboxLimits(step_deadline_s=1.0, overage_s=60.0)  # measure, never time out
-    results: dict[str, Any] = {}
-    load_before = os.getloadavg()
+    os.environ[WEAK_ENV] = "1"  # measuring the fallback is the operator's explicit choice
+    skipped: dict[str, str] = {}
+    modes: list[str] = []
     for mode in args.modes:
-        os.environ["SANDBOX"] = mode
-        if mode == "seccomp":  # measuring the fallback is the operator's explicit choice
-            os.environ[weak_env] = "1"
         try:
-            sandbox_mode()
+            _in_mode(mode, sandbox_mode)
+            modes.append(mode)
         except SandboxError as err:
-            results[mode] = {"skipped": str(err)}
-            continue
-        with tempfile.TemporaryDirectory(prefix="slipstream-bench-") as tmp:
-            folder = Path(tmp)
-            results[mode] = {
-                "per_step": per_step(folder, args.track, args.steps, limits, args.blocks),
-                "races": races_per_minute(folder, args.track, args.races, limits),
-            }
+            skipped[mode] = str(err)
+    load_before = os.getloadavg()
+    with tempfile.TemporaryDirectory(prefix="slipstream-bench-") as tmp:
+        folder = Path(tmp)
+        steps = per_step(folder, args.track, args.steps, limits, modes, args.blocks)
+        races = races_per_minute(folder, args.track, args.races, limits, modes)
     return {
         "benchmark": "sandbox_overhead",
         "track": args.track,
         "steps": args.steps,
         "machine": {
             "platform": platform.platform(),
+            "processor": platform.processor() or platform.machine(),
             "python": platform.python_version(),
             "cpus": os.cpu_count(),
             "load_average_before": load_before,
             "load_average": os.getloadavg(),
         },
-        "modes": results,
+        "per_step": steps,
+        "races": races,
+        "skipped": skipped,
     }
 
 
@@ -236,41 +265,40 @@ def print_table(doc: dict[str, Any]) -> None:
     from rich.table import Table
 
     console = Console()
-    steps = Table(title=f"Per step, pursuit policy ({doc['steps']} observations, {doc['track']})")
-    races = Table(title="One-lap races with 4 pursuit cars")
-    for name in ("mode", "in-process µs", "sandboxed µs", "round trip µs", "ratio"):
-        steps.add_column(name, justify="right")
-    for name in (
-        "mode",
-        "in-process races/min",
-        "fresh sandboxes races/min",
-        "pooled sandboxes races/min",
-        "pooled / in-process",
-        "finished",
-    ):
-        races.add_column(name, justify="right")
-    for mode, res in doc["modes"].items():
-        if "skipped" in res:
-            console.print(f"{mode}: skipped ({res['skipped']})")
-            continue
-        s, r = res["per_step"], res["races"]
-        steps.add_row(
+    steps, races = doc["per_step"], doc["races"]
+    step_table = Table(
+        title=f"Per step, pursuit policy ({doc['steps']} observations, {doc['track']}); "
+        f"in-process: {steps['in_process_us']:.0f} µs"
+    )
+    for name in ("mode", "sandboxed µs", "round trip µs", "overhead µs", "sandboxed / in-process"):
+        step_table.add_column(name, justify="right")
+    race_table = Table(
+        title=f"One-lap races with 4 pursuit cars ({races['races']} each); in-process: "
+        f"{races['in_process_races_per_min']:.1f} races/min"
+    )
+    for name in ("mode", "fresh races/min", "pooled races/min", "fresh ×", "pooled ×", "finished"):
+        race_table.add_column(name, justify="right")
+    for mode, why in doc["skipped"].items():
+        console.print(f"{mode}: skipped ({why})")
+    for mode in (m for m in steps if m != "in_process_us"):
+        s, r = steps[mode], races[mode]
+        step_table.add_row(
             mode,
-            f"{s['in_process_us']:.0f}",
             f"{s['sandboxed_us']:.0f}",
             f"{s['round_trip_us']:.0f}",
+            f"{s['overhead_us']:.0f}",
             f"{s['ratio']:.2f}×",
         )
-        races.add_row(
+        race_table.add_row(
             mode,
-            f"{r['in_process_races_per_min']:.1f}",
-            f"{r['sandboxed_races_per_min']:.1f}",
+            f"{r['fresh_races_per_min']:.1f}",
             f"{r['pooled_races_per_min']:.1f}",
-            f"{r['pooled_ratio']:.2f}×",
+            f"{r['fresh_ratio']:.2f}",
+            f"{r['pooled_ratio']:.2f}",
             f"{r['finished_fraction']:.0%}",
         )
-    console.print(steps)
-    console.print(races)
+    console.print(step_table)
+    console.print(race_table)
     machine = doc["machine"]
     console.print(
         f"load average (1, 5, 15 min) before: {machine['load_average_before']}, "

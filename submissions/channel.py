@@ -59,6 +59,7 @@ _SEQ = struct.Struct("<H")  # a frame header's sequence number (protocol.HEADER)
 _SEQ_OFFSET = 6  # … at this offset
 _SEALS = fcntl.F_SEAL_SHRINK | fcntl.F_SEAL_GROW | fcntl.F_SEAL_SEAL
 _ONE = b"\x01"
+FIRST_COPY = 512  # bytes a reader copies first: header, shape and any small payload
 WAKE_READ = 4096  # bytes of wake-ups read at once (an honest worker has 1 pending)
 
 
@@ -72,14 +73,22 @@ def request_bytes_for(shape: tuple[int, ...] | list[int]) -> int:
 
 
 def _read_frame(memory: mmap.mmap, start: int, room: int) -> Frame:
-    """The frame in ``memory[start : start + room]``, decoded from copies (head, then all).
+    """The frame in ``memory[start : start + room]``, decoded from the reader's own copy.
+
+    One copy of the first :data:`FIRST_COPY` bytes holds a whole action, OK or short text
+    frame (decoded from it alone); a longer frame is copied again, whole, and checked again
+    on that copy (:func:`decode_frame`), so a slot rewritten between the two copies yields
+    a refused frame, never one assembled from both.
 
     Raises:
         ProtocolError: no valid frame, or one longer than ``room``.
     """
-    length = frame_length(memory[start : start + HEAD_MAX], room)
+    first = memory[start : start + min(room, FIRST_COPY)]
+    length = frame_length(first, room)
     if length > room:
         raise ProtocolError(f"a frame of {length} bytes in a {room}-byte slot")
+    if length <= len(first):
+        return decode_frame(first[:length], room)
     return decode_frame(memory[start : start + length], room)
 
 

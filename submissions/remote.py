@@ -295,8 +295,10 @@ def _surely_within(
     and anything it does not accept is ``action_problem``'s call."""
     if arr.shape != bounds[0] or arr.dtype.kind not in "fiu":
         return False
-    values = arr.ravel().tolist()
-    return all(lo <= v <= hi for v, lo, hi in zip(values, bounds[1], bounds[2], strict=True))
+    for value, low, high in zip(arr.ravel().tolist(), bounds[1], bounds[2], strict=True):
+        if not low <= value <= high:
+            return False
+    return True
 
 
 _GONE = "gone"  # a reply item: the worker's end of the bell closed, no reply came

@@ -29,6 +29,7 @@ from hypothesis import strategies as st
 from arena.race import action_problem
 from submissions import remote
 from submissions.channel import (
+    FIRST_COPY,
     REPLY_BYTES,
     WAKE_READ,
     Channel,
@@ -162,24 +163,35 @@ class _TornMemory:
         return data[index]
 
 
+LONG = encode(Kind.ERROR, np.full(2000, ord("x"), np.uint8), 3)  # longer than FIRST_COPY
+
+
 @pytest.mark.parametrize(
     "then",
     [
-        encode(Kind.ACTION, np.zeros(600, np.float32), 3),  # longer than the head said
-        encode(Kind.ACTION, np.zeros(1, np.float32), 3),  # shorter
-        HEADER.pack(b"SL", Kind.ACTION, 1, 8, 3, 8) + b"\xff" * 64,  # 8 absurd axes
+        encode(Kind.ERROR, np.full(3000, ord("y"), np.uint8), 3),  # longer than the head said
+        encode(Kind.ERROR, np.full(100, ord("y"), np.uint8), 3),  # shorter
+        HEADER.pack(b"SL", Kind.ERROR, 5, 8, 3, 2000) + b"\xff" * 64,  # 8 absurd axes
     ],
     ids=["grown", "shrunk", "absurd-axes"],
 )
 def test_a_slot_rewritten_between_the_two_copies_is_refused(then: bytes) -> None:
-    """The time-of-check/time-of-use race of a shared slot, made exact: the head copy
+    """The time-of-check/time-of-use race of a shared slot, made exact: the first copy
     describes one frame, the full copy holds another. The full copy is checked again on
     its own, so the mismatch is a ProtocolError (the policy's ``invalid``), never a read
     past the frame or a numpy error."""
-    first = encode(Kind.ACTION, np.zeros(2, np.float32), 3)
-    torn = _TornMemory(first + b"\0" * 4096, then + b"\0" * 4096)
+    assert len(LONG) > FIRST_COPY
+    torn = _TornMemory(LONG + b"\0" * 4096, then + b"\0" * 4096)
     with pytest.raises(ProtocolError):
         _read_frame(torn, 0, REPLY_BYTES)  # type: ignore[arg-type]
+
+
+def test_a_small_frame_is_decoded_from_one_copy() -> None:
+    """An action fits the first copy: what the slot holds afterwards does not matter."""
+    action = encode(Kind.ACTION, np.array([0.25, -0.5], np.float32), 3)
+    torn = _TornMemory(action + b"\0" * 4096, b"garbage" * 1000)
+    frame = _read_frame(torn, 0, REPLY_BYTES)  # type: ignore[arg-type]
+    assert frame.seq == 3 and frame.array.tolist() == [0.25, -0.5]
 
 
 def test_worker_side_round_trip(channel: Channel) -> None:

@@ -21,6 +21,7 @@ import struct
 import textwrap
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -72,6 +73,19 @@ def memfds():
         if stat.S_ISREG(st.st_mode) and st.st_nlink == 0:
             found.append([fd, st.st_ino, st.st_size])
     return found
+
+
+def signalable():
+    # the pids near its own that it may signal (kill(pid, 0) allowed)
+    me = os.getpid()
+    found = []
+    for pid in range(max(1, me - 5000), me + 5000):
+        try:
+            os.kill(pid, 0)
+        except OSError:
+            continue
+        found.append(pid)
+    return found
 """
 
 
@@ -107,6 +121,11 @@ def race_many(
     return out, policies, took
 
 
+def _reported(policy: SandboxedPolicy, tag: str) -> Any:
+    line = next(x for x in policy.output.splitlines() if x.startswith(tag + " "))
+    return json.loads(line[len(tag) + 1 :])
+
+
 FORGED = {  # name: (the frame written into the reply slot, rung; a word of the detail)
     "nan": ("encode(Kind.ACTION, np.array([np.nan, 0.0], np.float32), seq)", "NaN"),
     "huge": ("encode(Kind.ACTION, np.array([1e300, 1e300]), seq)", "outside"),
@@ -130,8 +149,9 @@ def test_forged_replies_in_the_shared_region_are_invalid(
     """Values written straight into the reply slot and rung in: NaN, 1e300, a bool array
     (wrong dtype), a 1 TiB header, a zero-size (0, 2⁶³) shape, a frame longer than the slot.
     Each is copied out, checked and refused: ``invalid``, its car alone; the pursuit car
-    finishes. Two honest sandboxed cars list the memory they can reach: one region each,
-    its own (no other car's channel is in reach)."""
+    finishes. Two honest sandboxed cars list the memory they can reach (one region each,
+    its own: no other car's channel is in reach) and the processes they can signal (only
+    their own sandbox's: not each other, not the host)."""
     bodies = {
         name: attack(
             f"""
@@ -150,6 +170,7 @@ def test_forged_replies_in_the_shared_region_are_invalid(
         class Policy(Driver):
             def attack(self, obs):
                 print("MEMFDS " + json.dumps(memfds()), flush=True)
+                print("PIDS " + json.dumps([os.getpid(), signalable()]), flush=True)
         """
     )
     bodies |= {"inventory-a": inventory, "inventory-b": inventory}
@@ -158,14 +179,19 @@ def test_forged_replies_in_the_shared_region_are_invalid(
         status, reason, detail = outcome[name]
         assert (status, reason) == ("dnf", "invalid"), (name, detail)
         assert word in detail, (name, detail)
-    seen = []
+    seen, pids = [], []
     for name in ("inventory-a", "inventory-b"):
         assert outcome[name][0] == "finished", outcome[name]
-        line = next(x for x in policies[name].output.splitlines() if x.startswith("MEMFDS "))
-        regions = [r for r in json.loads(line[len("MEMFDS ") :]) if r[2] >= REPLY_BYTES]
+        regions = [r for r in _reported(policies[name], "MEMFDS") if r[2] >= REPLY_BYTES]
         assert len(regions) == 1, regions  # its channel, and no other car's
         seen.append(regions[0][1])
+        pids.append(_reported(policies[name], "PIDS"))
     assert seen[0] != seen[1]
+    for (me, reach), (other, _) in (pids, pids[::-1]):
+        # bwrap: its pid namespace (bwrap's init and itself); the fallback: itself alone
+        # (Landlock scopes its signals), never the other car, never the host
+        assert set(reach) <= ({1, me} if mode == "bwrap" else {me}), reach
+        assert me in reach and (mode == "bwrap" or other not in reach)
 
 
 TIMING = {
