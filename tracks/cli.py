@@ -92,7 +92,11 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         default=None,
         help="input format (default: from the suffix: .csv f1tenth, .npy deepracer, .json)",
     )
-    p_import.add_argument("--name", default=None, help="track name (default: the file's stem)")
+    p_import.add_argument(
+        "--name",
+        default=None,
+        help="track name (default: the file's stem; Spielberg_centerline.csv -> Spielberg)",
+    )
     p_import.add_argument("--out", type=Path, required=True, help="JSON file to write")
     p_import.add_argument(
         "--scale",

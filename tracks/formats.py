@@ -309,7 +309,8 @@ def read_f1tenth(
             arr[:, :2],
             wl,
             wr,
-            name=name or path.stem,
+            # f1tenth_racetracks names its files <Track>/<Track>_centerline.csv
+            name=name or path.stem.removesuffix("_centerline"),
             description=f"imported from F1TENTH CSV {path.name}",
             options=opts,
             notes=notes,

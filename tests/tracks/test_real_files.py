@@ -118,6 +118,13 @@ def test_scale_option_scales_length_and_widths(tmp_path: Path) -> None:
     assert model.width_left.mean() == pytest.approx(1.1, abs=1e-3)
 
 
+def test_f1tenth_track_is_named_without_the_centerline_suffix(tmp_path: Path) -> None:
+    # f1tenth_racetracks: Spielberg/Spielberg_centerline.csv is the track "Spielberg".
+    path = write_f1tenth_centreline(tmp_path / "Spielberg_centerline.csv", stadium_points(20, 5))
+    assert read_f1tenth(path).name == "Spielberg"
+    assert read_f1tenth(path, name="Red Bull Ring").name == "Red Bull Ring"
+
+
 def test_consecutive_repeated_row_is_dropped(tmp_path: Path) -> None:
     pts = hairpin_points(0.6)
     pts = np.insert(pts, 40, pts[40], axis=0)  # one row written twice
