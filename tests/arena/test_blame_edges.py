@@ -149,3 +149,27 @@ def test_collision_term_sums_over_the_other_cars_in_a_batch() -> None:
         np.zeros((2, 3), dtype=np.int64), 0.05, RewardWeights(collision=0.5),
     )  # fmt: skip
     assert terms["collision"].tolist() == [[0.0, 0.0, 0.0], [-1.5, 0.0, 0.0]]
+
+
+def test_columns_after_vx_vy_are_ignored() -> None:
+    # The contract is (n, 2+) velocities [vx, vy, ...] (the pybullet sim's rows carry more
+    # columns; arena/env.py slices them today): blame reads the first two only.
+    poses, vel = pair(30.0, (3.0, 0.5), (1.0, -0.2))
+    with_yaw_rate = np.concatenate([vel, np.array([[2.5], [-4.0]])], axis=1)
+    at_fault, closing = collision_blame(poses, vel, TOUCH)
+    wide_fault, wide_closing = collision_blame(poses, with_yaw_rate, TOUCH)
+    np.testing.assert_array_equal(wide_fault, at_fault)
+    np.testing.assert_array_equal(wide_closing, closing)
+    assert at_fault[0, 1]
+
+
+def test_a_car_exactly_on_the_cone_edge_is_ahead() -> None:
+    # j at 45° from i's heading, the cone's half-angle set to exactly that bearing: the edge
+    # belongs to the cone (atan2(1, 1) is the same float on both sides of the comparison).
+    poses = np.array([[0.0, 0.0, 0.0], [0.5, 0.5, 0.0]])
+    vel = np.array([[2.0, 2.0], [0.0, 0.0]])
+    at_fault, closing = collision_blame(poses, vel, TOUCH, cone=math.atan2(1.0, 1.0))
+    assert closing[0, 1] > 0
+    assert at_fault[0, 1]
+    at_fault, _ = collision_blame(poses, vel, TOUCH, cone=math.atan2(1.0, 1.0) - 1e-9)
+    assert not at_fault[0, 1]

@@ -227,3 +227,29 @@ def test_races_and_wins_accumulate_and_an_all_dnf_race_has_no_winner(
     assert first is not None and second is not None
     assert (first.races, first.wins) == (3, 2)
     assert (second.races, second.wins) == (3, 0)
+
+
+def test_queue_stats_count_every_status_from_zero(db: Session, settings: Settings) -> None:
+    # What /health reports: every status, counted exactly (an absent status is 0).
+    subs = _subs(db, settings, 2)  # their two validation races have run: 2 done
+    assert queue.stats(db) == {"queued": 0, "leased": 0, "done": 2, "failed": 0}
+    assert queue.pending(db) == 0
+    for _ in range(3):
+        _race(db, subs, [0, 1])
+    assert queue.stats(db) == {"queued": 3, "leased": 0, "done": 2, "failed": 0}
+    assert queue.pending(db) == 3
+    lease = queue.claim(db, owner="w", lease_s=60)
+    assert lease is not None
+    assert queue.stats(db) == {"queued": 2, "leased": 1, "done": 2, "failed": 0}
+    assert queue.pending(db) == 3
+    # The claimed race fails on each of its 3 attempts (failed for good); the others finish.
+    assert queue.fail(db, lease, "boom")
+    while (nxt := queue.claim(db, owner="w", lease_s=60)) is not None:
+        race = db.get(Race, nxt.race_id)
+        assert race is not None
+        if nxt.race_id == lease.race_id:
+            assert queue.fail(db, nxt, "boom")
+        else:
+            assert queue.complete(db, nxt, factories.fake_result(race))
+    assert queue.stats(db) == {"queued": 0, "leased": 0, "done": 4, "failed": 1}
+    assert queue.pending(db) == 0
