@@ -1,17 +1,18 @@
-"""Leaderboard load: latency and throughput of the site and the API on a large database.
+"""Leaderboard load: latency and throughput of every page and API endpoint on a large database.
 
-1. Fills a fresh database (SQLite by default, or ``--db URL``) with ``--submissions``
-   submissions (10,000) and ``--races`` finished ranked races (100,000) of 2–8 cars, with
-   their entries, rating history, track records and queue rows — bulk ``INSERT``s, no races
-   are simulated.
+1. Fills a fresh database — SQLite (``--db sqlite``, the default), a throwaway PostgreSQL
+   server (``--db postgresql``: :func:`leaderboard.localpg.throwaway_server`, the one the tests
+   use) or any ``--db URL`` — with ``--submissions`` submissions (10,000) and ``--races``
+   finished ranked races (100,000) of 2–8 cars, with their entries, rating history, track
+   records, queue rows and a few hundred validation races — bulk ``INSERT``s, no races are
+   simulated.
 2. Starts ``slipstream serve`` (uvicorn, one process) on 127.0.0.1.
-3. For each endpoint, runs one client, then ``--concurrency`` clients, in a closed loop for
-   ``--seconds`` each: the leaderboard page (``/``), ``/api/leaderboard`` (first and a deep
-   page), ``/tracks`` and ``/api/tracks``, a track page, ``/api/races``, a random race and
-   submission (API and page).
+3. For each GET endpoint of the app (every API operation and every page; the script checks
+   that none is missing), runs one client, then ``--concurrency`` clients, in a closed loop
+   for ``--seconds`` each; ids are drawn at random, authenticated endpoints use a token.
 4. Prints, per endpoint, the single-client p50 and the ``--concurrency``-client p50/p99
-   latency (ms) and requests/s, and ``--json``. Goals (issue 13): single-client p50 ≤ 20 ms,
-   8-client p99 ≤ 150 ms.
+   latency (ms) and requests/s, whether it meets issue 13's goals (single-client p50 ≤ 20 ms,
+   8-client p99 ≤ 150 ms), the machine and its load average, and ``--json``.
 
 The server runs with its rate limits off (``SLIPSTREAM_RATE_LIMITS=false``): a load generator
 on one address would otherwise measure 429s.
@@ -21,8 +22,8 @@ two compete for the CPUs; the figures are a floor.
 
 Usage::
 
-    python bench/leaderboard_load.py [--submissions 10000] [--races 100000]
-        [--seconds 5] [--concurrency 8] [--db URL] [--keep DIR] [--json]
+    python bench/leaderboard_load.py [--db sqlite|postgresql|URL] [--submissions 10000]
+        [--races 100000] [--seconds 5] [--concurrency 8] [--keep DIR] [--json]
 """
 
 from __future__ import annotations
@@ -40,14 +41,18 @@ import subprocess
 import sys
 import tempfile
 import time
+from contextlib import ExitStack
 from dataclasses import asdict, dataclass
 from datetime import datetime, timedelta
 from pathlib import Path
 from typing import Any
 
 import httpx
+from fastapi.routing import APIRoute
 from sqlalchemy import Engine, func, insert, select
+from sqlalchemy.orm import Session
 
+from leaderboard import auth, localpg
 from leaderboard.db import make_engine
 from leaderboard.migrations import upgrade
 from leaderboard.models import (
@@ -193,10 +198,50 @@ def fill(engine: Engine, n_subs: int, n_races: int, seed: int = 0) -> dict[str, 
     return times
 
 
+GOAL_SINGLE_P50_MS = 20.0  # issue 13: one client at a time
+GOAL_LOADED_P99_MS = 150.0  # issue 13: with 8 clients
+VALIDATION_RACES = 500  # unrated races mixed in (pages must not count them as ranked)
+
+
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
+
+
+def add_validation_races(engine: Engine, n_races: int, n_subs: int, seed: int = 1) -> None:
+    """A few finished validation races (one submission against a baseline) after the rest."""
+    rng = random.Random(seed)
+    t0 = datetime(2026, 6, 1)
+    with engine.connect() as conn:
+        first = (conn.execute(select(func.max(Race.id))).scalar() or 0) + 1
+    races, entries = [], []
+    for r in range(first, first + n_races):
+        sub = rng.randint(1, n_subs)
+        races.append(
+            {"id": r, "kind": "validation", "status": "finished", "track": "oval", "seed": r,
+             "laps": 2, "penalties": False, "created_at": t0, "started_at": t0,
+             "finished_at": t0, "duration_s": 9.0, "sandbox": "bwrap", "result": None,
+             "replay_path": None, "viser_path": None, "error": None}
+        )  # fmt: skip
+        for car, (sid, name) in enumerate([(sub, f"racer{sub - 1}:v1"), (None, "pursuit")]):
+            entries.append(
+                {"race_id": r, "car": car, "submission_id": sid, "version_id": sid,
+                 "name": name, "source": "x", "position": car + 1, "rank": car + 1,
+                 "status": "finished", "laps_completed": 2, "best_lap": 21.0,
+                 "total_time": 42.0, "lap_times": [21.0, 21.0], "collisions": 0,
+                 "at_fault_collisions": 0, "off_track": 0}
+            )  # fmt: skip
+    _bulk(engine, Race, races)
+    _bulk(engine, RaceEntry, entries)
+
+
+def add_user(engine: Engine, name: str = "loadtester") -> str:
+    """A user with an API token (for the authenticated endpoints); the token."""
+    with Session(engine) as session:
+        _, token = auth.create_user(session, name=name)
+        session.commit()
+    return token
 
 
 def start_server(url: str, data_dir: Path, port: int) -> subprocess.Popen[bytes]:
@@ -219,13 +264,22 @@ def start_server(url: str, data_dir: Path, port: int) -> subprocess.Popen[bytes]
     raise RuntimeError("the server did not start within 60 s")
 
 
-async def _load(base: str, paths: list[str], seconds: float, concurrency: int) -> Figures:
+async def _load(
+    base: str,
+    endpoint: str,
+    paths: list[str],
+    seconds: float,
+    concurrency: int,
+    headers: dict[str, str],
+) -> Figures:
     latencies: list[float] = []
     errors = 0
     stop_at = time.perf_counter() + seconds
     rng = random.Random(1)
     limits = httpx.Limits(max_connections=concurrency, max_keepalive_connections=concurrency)
-    async with httpx.AsyncClient(base_url=base, limits=limits, timeout=30) as client:
+    async with httpx.AsyncClient(
+        base_url=base, limits=limits, timeout=30, headers=headers
+    ) as client:
 
         async def one() -> None:
             nonlocal errors
@@ -245,13 +299,97 @@ async def _load(base: str, paths: list[str], seconds: float, concurrency: int) -
         elapsed = time.perf_counter() - start
     qs = statistics.quantiles(latencies, n=100) if len(latencies) > 1 else latencies * 99
     return Figures(
-        endpoint=paths[0] if len(paths) == 1 else paths[0].rsplit("/", 1)[0] + "/{id}",
+        endpoint=endpoint,
         requests=len(latencies),
         errors=errors,
         p50_ms=round(qs[49] * 1000, 2),
         p99_ms=round(qs[98] * 1000, 2),
         rps=round(len(latencies) / elapsed, 1),
     )
+
+
+def get_routes() -> set[str]:
+    """Every GET route of the app: API operations and pages (path templates)."""
+    import tempfile as _tempfile  # a throwaway app, only to list its routes
+
+    from leaderboard.app import create_app
+    from leaderboard.settings import Settings
+    from leaderboard.web.pages import web_router
+    from leaderboard.web.session import session_router
+
+    with _tempfile.TemporaryDirectory() as tmp:
+        app = create_app(Settings(data_dir=Path(tmp)))
+        api = {path for path, ops in app.openapi()["paths"].items() if "get" in ops}
+    pages = {
+        r.path
+        for router in (web_router, session_router)
+        for r in router.routes
+        if isinstance(r, APIRoute) and "GET" in (r.methods or ())
+    }
+    return api | pages | {"/openapi.json", "/docs", "/redoc"}
+
+
+def endpoint_groups(n_subs: int, n_races: int, token: str) -> list[tuple[str, list[str], bool]]:
+    """``(route, paths drawn from, authenticated)`` for every GET route of the app."""
+    rng = random.Random(0)
+    races = [rng.randint(1, n_races) for _ in range(200)]
+    subs = [rng.randint(1, n_subs) for _ in range(200)]
+    users = [f"user{rng.randint(0, max(0, n_subs // 10 - 1))}" for _ in range(200)]
+    track = TRACKS[4]
+    return [
+        ("/", ["/"], False),
+        ("/ (page 20)", [f"/?page={max(1, n_subs // 500)}"], False),
+        ("/api/leaderboard", ["/api/leaderboard"], False),
+        ("/api/leaderboard (page 20)", [f"/api/leaderboard?page={max(1, n_subs // 500)}"], False),
+        ("/races", ["/races"], False),
+        ("/races?track=", [f"/races?track={track}"], False),
+        ("/api/races", ["/api/races"], False),
+        ("/api/races?submission=", [f"/api/races?submission={s}" for s in subs], False),
+        ("/races/{race_id}", [f"/races/{r}" for r in races], False),
+        ("/api/races/{race_id}", [f"/api/races/{r}" for r in races], False),
+        ("/api/races/{race_id}/logs", [f"/api/races/{r}/logs" for r in races], True),
+        ("/submissions/{submission_id}", [f"/submissions/{s}" for s in subs], False),
+        ("/api/submissions", ["/api/submissions"], False),
+        ("/api/submissions/{submission_id}", [f"/api/submissions/{s}" for s in subs], False),
+        (
+            "/api/submissions/{submission_id}/races",
+            [f"/api/submissions/{s}/races" for s in subs],
+            False,
+        ),
+        ("/tracks", ["/tracks"], False),
+        ("/api/tracks", ["/api/tracks"], False),
+        ("/tracks/{name}", [f"/tracks/{track}"], False),
+        ("/api/tracks/{name}", [f"/api/tracks/{track}"], False),
+        ("/tracks/{name}/plot.png", [f"/tracks/{track}/plot.png"], False),
+        ("/users/{name}", [f"/users/{u}" for u in users], False),
+        ("/api/users/{name}", [f"/api/users/{u}" for u in users], False),
+        ("/api/users/me", ["/api/users/me"], True),
+        ("/api/tokens", ["/api/tokens"], True),
+        ("/api/health", ["/api/health"], False),
+        ("/api/jobs", ["/api/jobs"], False),
+        ("/compete", ["/compete"], False),
+        ("/signin", ["/signin"], False),
+        ("/docs", ["/docs"], False),
+        ("/redoc", ["/redoc"], False),
+        ("/openapi.json", ["/openapi.json"], False),
+    ]
+
+
+def _route_of(label: str) -> str:
+    return label.split(" ", 1)[0].split("?", 1)[0]
+
+
+def _database(choice: str | None, data_dir: Path, stack: ExitStack) -> str:
+    """The database URL to fill: SQLite in ``data_dir``, a throwaway PostgreSQL, or a URL."""
+    if choice in (None, "sqlite"):
+        return f"sqlite:///{(data_dir / 'leaderboard.db').resolve()}"
+    if choice in ("postgresql", "postgres", "pg"):
+        # Settings a small dedicated server would use: the database fits in memory.
+        server = stack.enter_context(
+            localpg.throwaway_server("shared_buffers=512MB", "work_mem=16MB", "max_connections=100")
+        )
+        return localpg.create_database(server, "slipstream_load")
+    return choice
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -261,67 +399,77 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--races", type=int, default=100_000)
     ap.add_argument("--seconds", type=float, default=5.0, help="load duration per endpoint")
     ap.add_argument("--concurrency", type=int, default=8, help="clients in a closed loop")
-    ap.add_argument("--db", default=None, help="database URL (default: SQLite in --keep)")
+    ap.add_argument(
+        "--db",
+        default="sqlite",
+        help="sqlite (default), postgresql (a throwaway local server) or a database URL",
+    )
     ap.add_argument("--keep", type=Path, default=None, help="data folder to keep (and reuse)")
+    ap.add_argument("--only", default=None, help="measure only routes containing this text")
     ap.add_argument("--json", action="store_true", help="print the figures as JSON")
     args = ap.parse_args(argv)
 
-    data_dir = args.keep or Path(tempfile.mkdtemp(prefix="slipstream-load-"))
-    data_dir.mkdir(parents=True, exist_ok=True)
-    url = args.db or f"sqlite:///{(data_dir / 'leaderboard.db').resolve()}"
-    engine = make_engine(url)
-    upgrade(url, engine=engine)
-    with engine.connect() as conn:
-        have = conn.execute(select(func.count(Race.id))).scalar() or 0
-    fill_s: dict[str, float] = {}
-    if have == 0:
-        start = time.perf_counter()
-        fill_s = fill(engine, args.submissions, args.races)
-        fill_s["total"] = round(time.perf_counter() - start, 2)
-        print(f"filled in {fill_s['total']} s: {fill_s}", file=sys.stderr)
-    with engine.connect() as conn:
-        n_subs = conn.execute(select(func.count(Submission.id))).scalar() or 0
-        n_races = conn.execute(select(func.count(Race.id))).scalar() or 0
-    engine.dispose()
+    missing = get_routes() - {_route_of(label) for label, _, _ in endpoint_groups(1, 1, "")}
+    if missing:
+        print(f"warning: GET routes not measured: {sorted(missing)}", file=sys.stderr)
+    with ExitStack() as stack:
+        data_dir = args.keep or Path(tempfile.mkdtemp(prefix="slipstream-load-"))
+        data_dir.mkdir(parents=True, exist_ok=True)
+        url = _database(args.db, data_dir, stack)
+        engine = make_engine(url)
+        upgrade(url, engine=engine)
+        with engine.connect() as conn:
+            have = conn.execute(select(func.count(Race.id))).scalar() or 0
+        fill_s: dict[str, float] = {}
+        if have == 0:
+            start = time.perf_counter()
+            fill_s = fill(engine, args.submissions, args.races)
+            add_validation_races(engine, VALIDATION_RACES, args.submissions)
+            fill_s["total"] = round(time.perf_counter() - start, 2)
+            print(f"filled in {fill_s['total']} s: {fill_s}", file=sys.stderr)
+        token = add_user(engine, f"loadtester{int(time.time())}")
+        with engine.connect() as conn:
+            n_subs = conn.execute(select(func.count(Submission.id))).scalar() or 0
+            n_ranked = (
+                conn.execute(select(func.count(Race.id)).where(Race.kind == "ranked")).scalar() or 0
+            )
+        engine.dispose()
 
-    port = _free_port()
-    server = start_server(url, data_dir, port)
-    rng = random.Random(0)
-    groups = [
-        ["/"],
-        ["/api/leaderboard"],
-        [f"/api/leaderboard?page={n_subs // 100}&per_page=50"],
-        ["/api/races"],
-        [f"/api/races/{rng.randint(1, n_races)}" for _ in range(200)],
-        [f"/api/submissions/{rng.randint(1, n_subs)}" for _ in range(200)],
-        [f"/races/{rng.randint(1, n_races)}" for _ in range(200)],
-        [f"/submissions/{rng.randint(1, n_subs)}" for _ in range(200)],
-        ["/tracks"],
-        ["/api/tracks"],
-        ["/tracks/monza"],
-        ["/api/tracks/monza"],
-    ]
-    results: list[Figures] = []
-    try:
-        base = f"http://127.0.0.1:{port}"
-        for paths in groups:
-            single = asyncio.run(_load(base, paths, args.seconds, 1))
-            figures = asyncio.run(_load(base, paths, args.seconds, args.concurrency))
-            figures.single_p50_ms = single.p50_ms
-            figures.errors += single.errors
-            results.append(figures)
-    finally:
-        os.killpg(server.pid, signal.SIGTERM)
-        server.wait(timeout=30)
+        port = _free_port()
+        server = start_server(url, data_dir, port)
+        results: list[Figures] = []
+        load_before = os.getloadavg()
+        try:
+            base = f"http://127.0.0.1:{port}"
+            auth_headers = {"Authorization": f"Bearer {token}"}
+            for label, paths, authed in endpoint_groups(n_subs, n_ranked, token):
+                if args.only and args.only not in label:
+                    continue
+                headers = auth_headers if authed else {}
+                asyncio.run(_load(base, label, paths, 0.3, 1, headers))  # warm up
+                single = asyncio.run(_load(base, label, paths, args.seconds, 1, headers))
+                figures = asyncio.run(
+                    _load(base, label, paths, args.seconds, args.concurrency, headers)
+                )
+                figures.single_p50_ms = single.p50_ms
+                figures.errors += single.errors
+                results.append(figures)
+        finally:
+            os.killpg(server.pid, signal.SIGTERM)
+            server.wait(timeout=30)
+        load_after = os.getloadavg()
 
     report = {
         "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs",
+        "load_average": {"before": load_before, "after": load_after},
         "database": url.split(":", 1)[0],
         "submissions": n_subs,
-        "races": n_races,
+        "races": n_ranked,
         "concurrency": args.concurrency,
         "seconds": args.seconds,
         "fill_s": fill_s,
+        "goals": {"single_p50_ms": GOAL_SINGLE_P50_MS, "loaded_p99_ms": GOAL_LOADED_P99_MS},
+        "unmeasured_routes": sorted(missing),
         "endpoints": [asdict(r) for r in results],
     }
     if args.json:
@@ -331,18 +479,20 @@ def main(argv: list[str] | None = None) -> int:
         from rich.table import Table
 
         table = Table(
-            title=f"{n_subs:,} submissions, {n_races:,} races, {args.concurrency} clients "
-            f"({report['database']})"
+            title=f"{n_subs:,} submissions, {n_ranked:,} ranked races, {args.concurrency} "
+            f"clients ({report['database']}); load average "
+            f"{load_before[0]:.2f} → {load_after[0]:.2f}"
         )
         cols = ("endpoint", "requests", "errors", "1-client p50 ms", "p50 ms", "p99 ms", "req/s")
-        for col in cols:
+        for col in (*cols, "goal"):
             table.add_column(col, justify="left" if col == "endpoint" else "right")
         for r in results:
+            ok = r.single_p50_ms <= GOAL_SINGLE_P50_MS and r.p99_ms <= GOAL_LOADED_P99_MS
             table.add_row(
                 r.endpoint, str(r.requests), str(r.errors), f"{r.single_p50_ms:.1f}",
-                f"{r.p50_ms:.1f}", f"{r.p99_ms:.1f}", f"{r.rps:.0f}",
+                f"{r.p50_ms:.1f}", f"{r.p99_ms:.1f}", f"{r.rps:.0f}", "ok" if ok else "MISSED",
             )  # fmt: skip
-        Console().print(table)
+        Console(width=160).print(table)
     return 0
 
 

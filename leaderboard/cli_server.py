@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 import io
 import json
-import math
 import os
 import signal
 import sys
@@ -101,9 +100,8 @@ def register(sub: Any) -> None:
 
 def serve_command(args: argparse.Namespace) -> int:
     """Run ``slipstream serve``."""
-    import uvicorn  # noqa: PLC0415 - only this command needs the server
-
     from leaderboard.app import create_app  # noqa: PLC0415 - keeps `slipstream --help` fast
+    from leaderboard.serving import serve  # noqa: PLC0415 - only this command needs uvicorn
 
     settings = settings_from(args)
     if args.host not in (*settings.allowed_hosts, "0.0.0.0", "::", "*"):
@@ -116,14 +114,7 @@ def serve_command(args: argparse.Namespace) -> int:
         )
     app = create_app(settings)
     print(f"leaderboard on http://{args.host}:{args.port}/ (API docs at /docs)", file=sys.stderr)
-    uvicorn.run(
-        app,
-        host=args.host,
-        port=args.port,
-        log_level="warning",
-        timeout_keep_alive=math.ceil(settings.keep_alive_s),  # idle connections closed
-        limit_concurrency=settings.max_connections,  # 503 beyond, instead of exhausting FDs
-    )
+    serve(app, settings, args.host, args.port)  # with head, body and keep-alive timeouts
     return 0
 
 

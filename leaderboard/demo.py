@@ -176,12 +176,11 @@ def print_table(rows: list[dict[str, Any]]) -> None:
 
 def serve(settings: Any, host: str, port: int) -> None:
     """Serve the site until Ctrl-C."""
-    import uvicorn
-
+    from leaderboard import serving
     from leaderboard.app import create_app
 
     print(f"serving the leaderboard on http://{host}:{port}/ (Ctrl-C stops)", file=sys.stderr)
-    uvicorn.run(create_app(settings), host=host, port=port, log_level="warning")
+    serving.serve(create_app(settings), settings, host, port)  # as `slipstream serve` does
 
 
 def _run(args: argparse.Namespace) -> int:

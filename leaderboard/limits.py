@@ -8,17 +8,22 @@ Two ASGI middlewares, added by :func:`leaderboard.app.create_app`:
     1 MiB of multipart framing, everything else at ``settings.max_request_kb``. A declared
     length over the cap is refused before the first byte is read; a chunked body is cut off
     the moment it passes the cap. Upload routes are **authenticated before any of the body is
-    read**: no token, or an unknown or revoked one, is answered 401 at once. Each wait for the
-    next piece of a body is bounded by ``settings.body_idle_timeout_s`` and the whole body by
-    ``settings.upload_timeout_s`` (408). Every early refusal carries ``Connection: close``, so
-    the server stops reading the socket instead of draining what the client still sends.
+    read**: no token, or an unknown or revoked one, is answered 401 at once; a user whose daily
+    upload quota is spent gets 429 (``Retry-After``), and one who already has
+    ``settings.max_concurrent_uploads`` uploads in flight gets 429 too, so one account cannot
+    make the server hold more than that many bodies at once. Each wait for the next piece of a
+    body is bounded by ``settings.body_idle_timeout_s``; a whole upload by
+    ``settings.upload_timeout_s`` and any other body by ``body_idle_timeout_s`` (408). Every
+    early refusal carries ``Connection: close``, so the server stops reading the socket
+    instead of draining what the client still sends.
 
 :class:`RateLimit`
     Moving-window limits from the maintained ``limits`` library, answered with 429 and
     ``Retry-After`` (seconds): ``settings.rate_limit_ip`` per client address,
     ``settings.rate_limit_token`` per bearer token, and ``settings.rate_limit_auth_failures``
-    401 answers per address (once spent, requests from that address that carry credentials
-    get 429 until the window frees). Counters live in ``settings.rate_limit_storage``
+    401 answers per address (once spent, requests from that address that carry credentials —
+    a bearer token, or the website's sign-in form — get 429 until the window frees). Counters
+    live in ``settings.rate_limit_storage``
     (``memory://`` per process; ``redis://...`` to share them between server processes).
     Behind a reverse proxy, run uvicorn with ``--proxy-headers`` so the client address is the
     real one.
@@ -44,6 +49,7 @@ from starlette.responses import JSONResponse
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from leaderboard.auth import user_for_token
+from leaderboard.errors import LeaderboardError, NotAuthenticated, QuotaExceeded
 from leaderboard.settings import Settings
 
 MULTIPART_SLACK = 1 << 20  # bytes of form framing allowed on top of the bundle size limit
@@ -53,6 +59,8 @@ UPLOAD_ROUTES = (
     re.compile(r"^/api/submissions/[0-9]+/versions/?$"),
 )
 CLOSE = (b"connection", b"close")
+SIGNIN_PATH = "/signin"  # the website's sign-in form: a token in a POST body
+UPLOAD_BUSY_RETRY_S = 10  # Retry-After of a refusal for too many uploads in flight, s
 
 
 def is_upload(scope: Scope) -> bool:
@@ -105,27 +113,31 @@ def _size(n_bytes: int) -> str:
 
 
 class BodyGuard:
-    """ASGI middleware: body caps, auth-before-body for uploads, body-read timeouts.
+    """ASGI middleware: body caps, checks before an upload's body, body-read timeouts.
 
     Args:
         app: the wrapped application.
-        settings: caps and timeouts (see the module docstring).
-        authenticate: ``token -> bool``, run in a worker thread before an upload's body is
-            read (default: :func:`leaderboard.auth.user_for_token` on the app's database).
+        settings: caps, quotas and timeouts (see the module docstring).
+        check_uploader: ``(scope, token) -> user id``, run in a worker thread before an
+            upload's body is read; raises a :class:`~leaderboard.errors.LeaderboardError`
+            (its status and message are the answer) to refuse the upload (default:
+            :func:`check_uploader`).
     """
 
     def __init__(
         self,
         app: ASGIApp,
         settings: Settings,
-        authenticate: Callable[[Scope, str], bool] | None = None,
+        check_uploader: Callable[[Scope, str], int] | None = None,
     ) -> None:
         self.app = app
         self.upload_cap = settings.max_upload_bytes + MULTIPART_SLACK
         self.request_cap = int(settings.max_request_kb * 1024)
         self.idle_s = settings.body_idle_timeout_s
-        self.total_s = settings.upload_timeout_s
-        self.authenticate = authenticate or _token_is_valid
+        self.upload_s = settings.upload_timeout_s
+        self.max_in_flight = settings.max_concurrent_uploads
+        self.check_uploader = check_uploader or check_uploader_default
+        self.in_flight: dict[int, int] = {}  # user id -> uploads being received (this process)
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         """Guard one HTTP request."""
@@ -140,16 +152,37 @@ class BodyGuard:
             detail = "bad Content-Length" if bad else f"request body is larger than {_size(cap)}"
             await refuse(scope, receive, send, 400 if bad else 413, detail)
             return
-        if upload:
-            token = bearer_token(scope)
-            if token is None or not await anyio.to_thread.run_sync(self.authenticate, scope, token):
-                detail = (
-                    "missing API token: send 'Authorization: Bearer <token>'"
-                    if token is None
-                    else "invalid or revoked API token"
-                )
-                await refuse(scope, receive, send, 401, detail, {"WWW-Authenticate": "Bearer"})
-                return
+        if not upload:
+            await self._guarded(scope, receive, send, cap, self.idle_s)
+            return
+        token = bearer_token(scope)
+        try:
+            if token is None:
+                raise NotAuthenticated("missing API token: send 'Authorization: Bearer <token>'")
+            user_id = await anyio.to_thread.run_sync(self.check_uploader, scope, token)
+        except LeaderboardError as err:
+            await refuse(scope, receive, send, err.status_code, str(err), _error_headers(err))
+            return
+        if self.in_flight.get(user_id, 0) >= self.max_in_flight:
+            detail = (
+                f"{self.max_in_flight} of your uploads are still being received; "
+                "wait for them to finish"
+            )
+            headers = {"Retry-After": str(UPLOAD_BUSY_RETRY_S)}
+            await refuse(scope, receive, send, 429, detail, headers)
+            return
+        self.in_flight[user_id] = self.in_flight.get(user_id, 0) + 1
+        try:
+            await self._guarded(scope, receive, send, cap, self.upload_s)
+        finally:
+            self.in_flight[user_id] -= 1
+            if not self.in_flight[user_id]:
+                del self.in_flight[user_id]
+
+    async def _guarded(
+        self, scope: Scope, receive: Receive, send: Send, cap: int, total_s: float
+    ) -> None:
+        """Run the app with the body capped at ``cap`` bytes and ``total_s`` seconds."""
         started = False
 
         async def send_tracking(message: Message) -> None:
@@ -158,17 +191,17 @@ class BodyGuard:
             await send(message)
 
         try:
-            await self.app(scope, self._capped(receive, cap), send_tracking)
+            await self.app(scope, self._capped(receive, cap, total_s), send_tracking)
         except (BodyTooLarge, BodyTimeout) as err:
             # Raised outside a route's own error handling (a mount, a middleware): answer here.
             if started:
                 raise
             await refuse(scope, receive, send, err.status_code, err.detail)
 
-    def _capped(self, receive: Receive, cap: int) -> Receive:
+    def _capped(self, receive: Receive, cap: int, total_s: float) -> Receive:
         received = 0
-        deadline = time.monotonic() + self.total_s
-        idle_s, total_s = self.idle_s, self.total_s
+        deadline = time.monotonic() + total_s
+        idle_s = self.idle_s
 
         async def capped_receive() -> Message:
             nonlocal received
@@ -188,11 +221,31 @@ class BodyGuard:
         return capped_receive
 
 
-def _token_is_valid(scope: Scope, token: str) -> bool:
-    """Whether ``token`` belongs to a user of the app's database (nothing is written)."""
-    session = scope["app"].state.sessionmaker()
+def _error_headers(err: LeaderboardError) -> dict[str, str] | None:
+    if isinstance(err, QuotaExceeded):
+        return {"Retry-After": str(err.retry_after)}
+    if isinstance(err, NotAuthenticated):
+        return {"WWW-Authenticate": "Bearer"}
+    return None
+
+
+def check_uploader_default(scope: Scope, token: str) -> int:
+    """The id of the user of ``token`` if they may upload now (nothing is written).
+
+    Raises:
+        NotAuthenticated: an unknown or revoked token.
+        QuotaExceeded: the user's daily upload quota is spent.
+    """
+    from leaderboard.uploads import check_daily_quota  # noqa: PLC0415 - uploads imports a lot
+
+    app = scope["app"]
+    session = app.state.sessionmaker()
     try:
-        return user_for_token(session, token) is not None
+        user = user_for_token(session, token)
+        if user is None:
+            raise NotAuthenticated("invalid or revoked API token")
+        check_daily_quota(session, app.state.settings, user)
+        return int(user.id)
     finally:
         session.rollback()
         session.close()
@@ -246,9 +299,11 @@ class RateLimit:
         checks = [(self.per_ip, "ip", ip)]
         if token is not None:
             checks.append((self.per_token, "token", _token_key(token)))
-            if not await self.limiter.test(self.auth_failures, "authfail", ip):
-                await self._too_many(scope, receive, send, self.auth_failures, "authfail", ip)
-                return
+        signin = scope["method"] == "POST" and scope["path"] == SIGNIN_PATH
+        credentials = token is not None or signin
+        if credentials and not await self.limiter.test(self.auth_failures, "authfail", ip):
+            await self._too_many(scope, receive, send, self.auth_failures, "authfail", ip)
+            return
         for item, *key in checks:
             if not await self.limiter.hit(item, *key):
                 await self._too_many(scope, receive, send, item, *key)
@@ -285,6 +340,7 @@ __all__ = [
     "BodyTooLarge",
     "RateLimit",
     "bearer_token",
+    "check_uploader_default",
     "is_upload",
     "parse_limit",
 ]

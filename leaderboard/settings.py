@@ -72,10 +72,22 @@ class Settings(BaseSettings):
         default=64.0, gt=0, description="largest request body outside uploads, KiB"
     )
     body_idle_timeout_s: float = Field(
-        default=15.0, gt=0, description="longest wait for the next piece of a request body, s"
+        default=15.0,
+        gt=0,
+        description="longest wait for the next piece of a request body, and for the whole "
+        "body of a request that is not an upload, s",
     )
     upload_timeout_s: float = Field(
-        default=300.0, gt=0, description="longest time to receive a whole request body, s"
+        default=300.0, gt=0, description="longest time to receive a whole upload body, s"
+    )
+    header_timeout_s: float = Field(
+        default=10.0,
+        gt=0,
+        description="longest time from a connection (or its previous answer) to a complete "
+        "request head, s (slowloris)",
+    )
+    max_concurrent_uploads: int = Field(
+        default=8, ge=1, description="uploads per user being received at once (429 beyond)"
     )
     keep_alive_s: float = Field(
         default=5.0, gt=0, description="idle keep-alive connections are closed after this, s"

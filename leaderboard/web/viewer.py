@@ -14,9 +14,11 @@ what ``viser-build-client --out-dir DIR`` copies, no Node needed. It is copied o
 it: the import alone costs the web process ~50 MiB.
 
 The player runs JavaScript that a ``.viser`` file or a websocket server sends it, so it is kept
-on a short leash (issue 13): ``/viewer/`` answers only when its ``playbackPath``, if any, is
-``/replays/<race id>.viser`` (same origin) and its other parameters are display settings
-(:data:`VIEWER_PARAMS`; no ``websocket``); anything else is 400. It is served with its own
+on a short leash (issue 13): every request under ``/viewer`` (``/viewer/``, ``/viewer//``,
+``/viewer/index.html``, ...: any path the static files would answer with the player) is
+answered only when its ``playbackPath``, if any, is exactly ``/replays/<race id>.viser`` (same
+origin) and its other parameters are display settings (:data:`VIEWER_PARAMS`; no
+``websocket``); anything else is 400. It is served with its own
 Content-Security-Policy (:func:`viewer_csp`): its two inline scripts allowed by hash (the
 loader and the code it unpacks), WebAssembly but no ``eval``/``new Function``, connections to
 the site only.
@@ -232,7 +234,7 @@ def viewer_query_error(query_string: str) -> str | None:
             return f"unknown viewer parameter {name[:40]!r}"
         if names.count(name) > 1:
             return f"viewer parameter {name[:40]!r} given twice"
-        if not pattern.match(value):
+        if not pattern.fullmatch(value):  # fullmatch: "$" would let a trailing newline in
             if name == "playbackPath":
                 return f"playbackPath must be /replays/<race id>.viser, not {value[:80]!r}"
             return f"bad value for viewer parameter {name!r}"
@@ -240,17 +242,18 @@ def viewer_query_error(query_string: str) -> str | None:
 
 
 class ViewerGuard:
-    """ASGI wrapper of the player's static files: the page only with an allowed query."""
+    """ASGI wrapper of the player's static files: the page only with an allowed query.
+
+    Every path is checked, not only ``/viewer/``: the static files answer ``/viewer//``,
+    ``/viewer/./`` and the like with the same player page.
+    """
 
     def __init__(self, app: ASGIApp) -> None:
         self.app = app
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        """Refuse (400) the player page with a query :func:`viewer_query_error` rejects."""
-        if scope["type"] == "http" and scope["path"] in (
-            f"{VIEWER_PREFIX}/",
-            f"{VIEWER_PREFIX}/index.html",
-        ):
+        """Refuse (400) a request whose query :func:`viewer_query_error` rejects."""
+        if scope["type"] == "http":
             error = viewer_query_error(scope.get("query_string", b"").decode("latin-1"))
             if error is not None:
                 await PlainTextResponse(error, status_code=400)(scope, receive, send)

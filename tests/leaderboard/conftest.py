@@ -19,10 +19,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
-import socket
-import subprocess
-import tempfile
 import uuid
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -31,10 +27,9 @@ from pathlib import Path
 import pytest
 from fastapi import FastAPI
 from fastapi.testclient import TestClient
-from sqlalchemy import create_engine, text
 from sqlalchemy.orm import Session
 
-from leaderboard import auth
+from leaderboard import auth, localpg
 from leaderboard.app import create_app
 from leaderboard.settings import Settings
 from tests.leaderboard import factories
@@ -151,63 +146,23 @@ def seeded(db: Session, settings: Settings) -> Seeded:
 # ---- PostgreSQL --------------------------------------------------------------------------------
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 @pytest.fixture(scope="session")
 def pg_server() -> Iterator[str]:
-    """A PostgreSQL server for this test session (initdb + pg_ctl in a temporary folder).
-
-    Runs as the ``postgres`` system user when the tests run as root (initdb refuses root).
-    Listens on a Unix socket only. Yields an SQLAlchemy URL of its ``postgres`` database.
-    """
-    bins = sorted(Path("/").glob(PG_BIN_GLOB.lstrip("/")))
-    if not bins or not (bins[-1] / "initdb").exists():
-        pytest.skip("PostgreSQL binaries not found (Debian: apt-get install postgresql)")
-    bindir = bins[-1]
-    root = Path(tempfile.mkdtemp(prefix="slipstream-pg-", dir="/tmp"))
-    data, sock = root / "data", root / "sock"
-    sock.mkdir()
-    prefix: list[str] = []
-    if os.geteuid() == 0:
-        if shutil.which("runuser") is None:
-            pytest.skip("running as root without runuser: cannot start PostgreSQL")
-        shutil.chown(root, "postgres")
-        shutil.chown(sock, "postgres")
-        prefix = ["runuser", "-u", "postgres", "--"]
-    port = _free_port()
-
-    def run(*cmd: str) -> None:
-        subprocess.run([*prefix, *cmd], check=True, capture_output=True, timeout=120)
-
-    run(str(bindir / "initdb"), "-D", str(data), "-A", "trust", "-U", "postgres", "--no-sync")
-    opts = f"-p {port} -k {sock} -c listen_addresses='' -c fsync=off -c full_page_writes=off"
-    run(str(bindir / "pg_ctl"), "-D", str(data), "-o", opts, "-l", str(root / "log"), "-w", "start")
+    """A PostgreSQL server for this test session (:func:`leaderboard.localpg.throwaway_server`:
+    initdb + pg_ctl in a temporary folder, a Unix socket only). Yields an SQLAlchemy URL of its
+    ``postgres`` database."""
     try:
-        yield f"postgresql+psycopg://postgres@/postgres?host={sock}&port={port}"
-    finally:
-        subprocess.run(
-            [*prefix, str(bindir / "pg_ctl"), "-D", str(data), "-m", "immediate", "stop"],
-            capture_output=True,
-            timeout=60,
-            check=False,
-        )
-        shutil.rmtree(root, ignore_errors=True)
+        with localpg.throwaway_server() as url:
+            yield url
+    except localpg.PostgresUnavailable as err:  # raised before the yield only
+        pytest.skip(str(err))
 
 
 @pytest.fixture
 def pg_url(pg_server: str) -> Iterator[str]:
     """A fresh, empty PostgreSQL database for one test (dropped afterwards)."""
-    name = f"t_{uuid.uuid4().hex[:12]}"
-    admin = create_engine(pg_server, isolation_level="AUTOCOMMIT")
-    with admin.connect() as conn:
-        conn.execute(text(f'CREATE DATABASE "{name}"'))
+    url = localpg.create_database(pg_server)
     try:
-        yield pg_server.replace("/postgres?", f"/{name}?")
+        yield url
     finally:
-        with admin.connect() as conn:
-            conn.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
-        admin.dispose()
+        localpg.drop_database(pg_server, url)

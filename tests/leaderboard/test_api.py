@@ -259,6 +259,37 @@ def test_openapi_docs_and_health(client: TestClient) -> None:
     assert health["status"] == "ok" and health["revision"] == head_revision("sqlite://")
 
 
+def test_cached_job_counts_follow_the_queue(
+    client: TestClient, db: Session, settings: Settings, seeded: Seeded
+) -> None:
+    """/api/jobs is served from the snapshot cache; every queue move shows at once."""
+    from leaderboard import queue
+
+    def counts() -> dict[str, int]:
+        jobs = client.get("/api/jobs").json()
+        assert client.get("/api/health").json()["queue"] == jobs
+        return jobs
+
+    def truth() -> dict[str, int]:
+        db.expire_all()
+        return queue.stats(db)
+
+    assert counts() == truth()
+    race = Race(kind="ranked", track="oval", seed=1, laps=1)
+    db.add(race)
+    db.flush()
+    queue.enqueue(db, race, max_attempts=2)
+    db.commit()
+    assert counts() == truth() and truth()["queued"] == 1
+    lease = queue.claim(db, owner="t", lease_s=60)
+    assert lease is not None and counts() == truth() and truth()["leased"] == 1
+    assert queue.fail(db, lease, "boom")  # attempts left: queued again
+    assert counts() == truth() and truth()["queued"] == 1
+    lease = queue.claim(db, owner="t", lease_s=60)
+    assert lease is not None and queue.fail(db, lease, "boom again")  # the last attempt
+    assert counts() == truth() and truth()["failed"] >= 1 and truth()["queued"] == 0
+
+
 def test_tracks_count_finished_ranked_races_only(
     client: TestClient, db: Session, seeded: Seeded
 ) -> None:

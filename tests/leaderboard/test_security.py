@@ -31,6 +31,7 @@ from sqlalchemy.orm import Session
 
 from leaderboard.app import create_app
 from leaderboard.models import SubmissionVersion
+from leaderboard.serving import uvicorn_config
 from leaderboard.settings import Settings
 from tests.leaderboard.conftest import Account
 
@@ -57,21 +58,23 @@ class Served:
 
 @contextmanager
 def serve(app: FastAPI) -> Iterator[Served]:
-    """Run ``app`` under uvicorn (h11) on a free loopback port, counting bytes read."""
+    """Run ``app`` as ``slipstream serve`` does (:func:`leaderboard.serving.uvicorn_config`)
+    on a free loopback port, its HTTP protocol counting the bytes it reads."""
     import uvicorn
-    from uvicorn.protocols.http.h11_impl import H11Protocol
 
     read = [0]
+    settings: Settings = app.state.settings
+    config = uvicorn_config(app, settings, "127.0.0.1", 0)
 
-    class CountingH11(H11Protocol):
+    class CountingH11(config.http):  # type: ignore[name-defined,misc]
         def data_received(self, data: bytes) -> None:
             read[0] += len(data)
             super().data_received(data)
 
+    config.http = CountingH11
     sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
     sock.bind(("127.0.0.1", 0))
     port = sock.getsockname()[1]
-    config = uvicorn.Config(app, log_level="warning", lifespan="on", http=CountingH11)
     server = uvicorn.Server(config)
     thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
     thread.start()
@@ -170,6 +173,58 @@ def test_bad_token_chunked_upload_is_refused_after_reading_under_1_mib(
     assert read <= 1 * MiB
 
 
+def test_upload_past_the_daily_quota_is_refused_before_its_body(
+    settings: Settings, alice: Account, bundle_zip: Callable[..., Path]
+) -> None:
+    one = settings.model_copy(update={"max_uploads_per_day": 1})
+    app = create_app(one)
+    with TestClient(app) as c:
+        assert _upload(c, bundle_zip("first"), alice).status_code == 201
+    with serve(app) as served:
+        raw, _ = stream_chunked(
+            served, "/api/submissions", alice.headers, ATTACK_BYTES, limit=256 * MiB
+        )
+        read = served.read[0]
+    assert _status(raw) == 429 and b"last 24 hours" in raw and b"retry-after" in raw.lower()
+    assert read <= 1 * MiB, read
+
+
+def test_uploads_in_flight_per_user_are_bounded(settings: Settings, alice: Account) -> None:
+    """Two uploads of one user still being received: a third is refused (429) at once, so one
+    account cannot make the server hold many bodies at the same time."""
+    app = create_app(settings.model_copy(update={"max_concurrent_uploads": 2}))
+    head = (
+        f"POST /api/submissions HTTP/1.1\r\nHost: 127.0.0.1\r\n"
+        f"Authorization: Bearer {alice.token}\r\nTransfer-Encoding: chunked\r\n"
+        "Content-Type: multipart/form-data; boundary=b\r\n\r\n"
+    ).encode()
+    with serve(app) as served:
+        slow = [socket.create_connection((served.host, served.port), timeout=10) for _ in "ab"]
+        try:
+            for conn in slow:
+                conn.sendall(head + b"5\r\n--b\r\n\r\n")  # one chunk: the first boundary
+            time.sleep(1.0)  # both are authenticated and receiving
+            third = httpx.post(
+                served.url + "/api/submissions",
+                headers=alice.headers,
+                files={"file": ("b.zip", b"PK", "application/zip")},
+                timeout=30,
+            )
+        finally:
+            for conn in slow:
+                conn.close()
+        assert third.status_code == 429 and "still being received" in third.json()["detail"]
+        assert int(third.headers["retry-after"]) >= 1
+        time.sleep(1.0)  # the two are gone: uploads are accepted again
+        again = httpx.post(
+            served.url + "/api/submissions",
+            headers=alice.headers,
+            files={"file": ("b.zip", b"not a zip", "application/zip")},
+            timeout=30,
+        )
+        assert again.status_code == 422
+
+
 def test_authenticated_oversize_chunked_upload_is_413_and_stores_nothing(
     settings: Settings, alice: Account
 ) -> None:
@@ -217,13 +272,104 @@ def test_a_stalled_body_times_out_with_408(settings: Settings, alice: Account) -
             ).encode()
         )
         start = time.monotonic()
-        raw = conn.recv(65536)
+        raw = b""
+        while chunk := conn.recv(65536):  # until the server hangs up (head and body)
+            raw += chunk
         waited = time.monotonic() - start
     assert _status(raw) == 408 and b"not received within" in raw
     assert waited < 5.0
 
 
+def test_a_trickled_body_outside_uploads_times_out_in_the_idle_limit(
+    settings: Settings, alice: Account
+) -> None:
+    """One byte every 0.2 s never trips the idle wait; a small JSON body still has to arrive
+    within ``body_idle_timeout_s`` in all (uploads get ``upload_timeout_s``)."""
+    quick = settings.model_copy(update={"body_idle_timeout_s": 1.0})
+    with (
+        serve(create_app(quick)) as served,
+        socket.create_connection((served.host, served.port), timeout=10) as conn,
+    ):
+        conn.sendall(
+            (
+                f"POST /api/tokens HTTP/1.1\r\nHost: 127.0.0.1\r\n"
+                f"Authorization: Bearer {alice.token}\r\nContent-Length: 60000\r\n"
+                "Content-Type: application/json\r\n\r\n"
+            ).encode()
+        )
+        conn.settimeout(0.2)
+        start, raw = time.monotonic(), b""
+        while not raw and time.monotonic() - start < 10:
+            try:
+                conn.sendall(b" ")
+                raw = conn.recv(65536)
+            except TimeoutError:
+                continue
+            except OSError:
+                break
+        waited = time.monotonic() - start
+    assert _status(raw) == 408, raw[:100]
+    assert waited < 4.0
+
+
+def _closed_within(conn: socket.socket, seconds: float, trickle: bytes = b"") -> float | None:
+    """Seconds until the server closes ``conn`` (sending ``trickle`` every 0.2 s), or None."""
+    start = time.monotonic()
+    conn.settimeout(0.2)
+    while time.monotonic() - start < seconds:
+        try:
+            if trickle:
+                conn.sendall(trickle)
+            if conn.recv(65536) == b"":
+                return time.monotonic() - start
+        except TimeoutError:
+            continue
+        except OSError:
+            return time.monotonic() - start
+    return None
+
+
+def test_slow_request_heads_are_cut_off(settings: Settings) -> None:
+    """Slowloris (a connection that sends nothing, or one header line at a time) no longer
+    holds a connection slot; a keep-alive client that is quick is not affected."""
+    quick = settings.model_copy(update={"header_timeout_s": 1.0, "keep_alive_s": 5.0})
+    with serve(create_app(quick)) as served:
+        with socket.create_connection((served.host, served.port), timeout=10) as idle:
+            closed = _closed_within(idle, 8.0)
+        assert closed is not None and closed < 4.0, closed
+        with socket.create_connection((served.host, served.port), timeout=10) as slow:
+            slow.sendall(b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\n")
+            closed = _closed_within(slow, 8.0, trickle=b"X-a: b\r\n")
+        assert closed is not None and closed < 4.0, closed
+        # A second request on a kept-alive connection, its head sent slowly after the first
+        # answer, gets the same deadline (uvicorn's keep-alive timer stops at its first byte).
+        with socket.create_connection((served.host, served.port), timeout=10) as kept:
+            kept.sendall(b"GET /api/health HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+            assert _status(kept.recv(65536)) == 200
+            kept.sendall(b"GET / HTTP/1.1\r\n")
+            closed = _closed_within(kept, 8.0, trickle=b"X-a: b\r\n")
+        assert closed is not None and closed < 4.0, closed
+        with httpx.Client(base_url=served.url) as client:  # quick requests, one connection
+            for _ in range(3):
+                assert client.get("/api/health").status_code == 200
+                time.sleep(0.6)
+
+
 # ---- rate limits and quotas ----------------------------------------------------------------
+
+
+def test_failed_website_sign_ins_get_429(settings: Settings) -> None:
+    """The sign-in form takes a token in its body: its failures count like bad bearer tokens."""
+    app = create_app(settings.model_copy(update={"rate_limit_auth_failures": "3/minute"}))
+    with TestClient(app) as c:
+        form = c.get("/signin")
+        csrf = form.cookies.get("slipstream_csrf") or ""
+        codes = [
+            c.post("/signin", data={"token": f"slp_guess{i}", "csrf": csrf}).status_code
+            for i in range(5)
+        ]
+        assert codes == [401, 401, 401, 429, 429]
+        assert c.get("/api/leaderboard").status_code == 200
 
 
 def test_bad_tokens_get_429_with_retry_after(settings: Settings) -> None:
@@ -469,11 +615,14 @@ def test_docs_are_served_from_the_package(client: TestClient) -> None:
         "websocket=ws://evil.example:8080",
         "playbackPath=/replays/1.viser&playbackPath=https://evil.example/x.viser",
         "playbackPath=/replays/1.viser&initialCameraPosition=alert(1)",
+        "playbackPath=/replays/1.viser%0a",  # "$" matches before a trailing newline
     ],
 )
 def test_viewer_refuses_foreign_sources(client: TestClient, query: str) -> None:
-    r = client.get(f"/viewer/?{query}")
-    assert r.status_code == 400
+    # /viewer//: the static files serve the player for it too (found by the second review).
+    for page in ("/viewer/", "/viewer//", "/viewer/./", "/viewer/index.html"):
+        assert client.get(f"{page}?{query}").status_code == 400, (page, query)
+        assert client.get(f"{page}?playbackPath=/replays/1.viser").status_code == 200
 
 
 def test_viewer_policy(client: TestClient) -> None:
