@@ -17,7 +17,8 @@ run, against the same in-process figures.
    policies, races, kills them) and ``pooled`` (the ``--races`` races are one batch:
    :class:`submissions.remote.SandboxPool` keeps the four sandboxes between races, as
    :func:`submissions.jobs.run_race_jobs` does; the batch's figure includes the pool's
-   start-up, paid in its first race). Races alternate: for each seed an in-process race,
+   start-up, paid in its first race; "after start-up" compares the batch's later races
+   with the same in-process races). Races alternate: for each seed an in-process race,
    then each mode's fresh and pooled race. As in every race, the sandboxes start before the
    track and the simulator are built (:func:`arena.race.run_race`), so their start-up
    overlaps that work. On a 2-core machine the four workers share the cores with the
@@ -182,14 +183,15 @@ def races_per_minute(
     from submissions.remote import SandboxedPolicy, SandboxPool
 
     bundle = _bundle(folder, "pursuit_race", PURSUIT_SOURCE)
-    spent = {"in_process": 0.0} | {f"{m}/{k}": 0.0 for m in modes for k in ("fresh", "pooled")}
+    spent: dict[str, list[float]] = {"in_process": []}  # seconds per race, by kind
+    spent |= {f"{m}/{k}": [] for m in modes for k in ("fresh", "pooled")}
     statuses: dict[str, list[str]] = {m: [] for m in modes}
     pools = {mode: SandboxPool() for mode in modes}
 
     def timed(key: str, cars: list[Any], seed: int) -> list[str]:
         start = time.perf_counter()
         result, _ = run_race(cars, track=track, seed=seed)
-        spent[key] += time.perf_counter() - start
+        spent[key].append(time.perf_counter() - start)
         return [c.status for c in result.cars]
 
     try:
@@ -206,16 +208,23 @@ def races_per_minute(
     finally:
         for pool in pools.values():
             pool.close()
-    in_process = 60 * races / spent["in_process"]
+
+    def per_min(times: list[float]) -> float:
+        return 60 * len(times) / sum(times) if times else float("nan")
+
+    in_process = per_min(spent["in_process"])
     out: dict[str, Any] = {"races": races, "in_process_races_per_min": in_process}
     for mode in modes:
-        fresh = 60 * races / spent[f"{mode}/fresh"]
-        pooled = 60 * races / spent[f"{mode}/pooled"]
+        fresh, pooled = per_min(spent[f"{mode}/fresh"]), per_min(spent[f"{mode}/pooled"])
+        # after the pool's start-up (paid in the batch's first race), against the same races
+        steady = per_min(spent[f"{mode}/pooled"][1:]) / per_min(spent["in_process"][1:])
         out[mode] = {
             "fresh_races_per_min": fresh,
             "pooled_races_per_min": pooled,
             "fresh_ratio": fresh / in_process,
             "pooled_ratio": pooled / in_process,
+            "pooled_after_start_ratio": steady,
+            "first_pooled_race_s": spent[f"{mode}/pooled"][0],
             "finished_fraction": statuses[mode].count("finished") / len(statuses[mode]),
         }
     return out
@@ -240,7 +249,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     with tempfile.TemporaryDirectory(prefix="slipstream-bench-") as tmp:
         folder = Path(tmp)
         steps = per_step(folder, args.track, args.steps, limits, modes, args.blocks)
-        races = races_per_minute(folder, args.track, args.races, limits, modes)
+        races = (
+            races_per_minute(folder, args.track, args.races, limits, modes) if args.races else {}
+        )
     return {
         "benchmark": "sandbox_overhead",
         "track": args.track,
@@ -273,15 +284,23 @@ def print_table(doc: dict[str, Any]) -> None:
     for name in ("mode", "sandboxed µs", "round trip µs", "overhead µs", "sandboxed / in-process"):
         step_table.add_column(name, justify="right")
     race_table = Table(
-        title=f"One-lap races with 4 pursuit cars ({races['races']} each); in-process: "
-        f"{races['in_process_races_per_min']:.1f} races/min"
+        title=f"One-lap races with 4 pursuit cars ({races.get('races', 0)} each); in-process: "
+        f"{races.get('in_process_races_per_min', float('nan')):.1f} races/min"
     )
-    for name in ("mode", "fresh races/min", "pooled races/min", "fresh ×", "pooled ×", "finished"):
+    for name in (
+        "mode",
+        "fresh races/min",
+        "pooled races/min",
+        "fresh ×",
+        "pooled ×",
+        "pooled × after start-up",
+        "finished",
+    ):
         race_table.add_column(name, justify="right")
     for mode, why in doc["skipped"].items():
         console.print(f"{mode}: skipped ({why})")
     for mode in (m for m in steps if m != "in_process_us"):
-        s, r = steps[mode], races[mode]
+        s = steps[mode]
         step_table.add_row(
             mode,
             f"{s['sandboxed_us']:.0f}",
@@ -289,16 +308,21 @@ def print_table(doc: dict[str, Any]) -> None:
             f"{s['overhead_us']:.0f}",
             f"{s['ratio']:.2f}×",
         )
+        if mode not in races:
+            continue
+        r = races[mode]
         race_table.add_row(
             mode,
             f"{r['fresh_races_per_min']:.1f}",
             f"{r['pooled_races_per_min']:.1f}",
             f"{r['fresh_ratio']:.2f}",
             f"{r['pooled_ratio']:.2f}",
+            f"{r['pooled_after_start_ratio']:.2f}",
             f"{r['finished_fraction']:.0%}",
         )
     console.print(step_table)
-    console.print(race_table)
+    if races:
+        console.print(race_table)
     machine = doc["machine"]
     console.print(
         f"load average (1, 5, 15 min) before: {machine['load_average_before']}, "
@@ -313,7 +337,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--steps", type=int, default=1000, help="observations timed per step figure"
     )
-    parser.add_argument("--races", type=int, default=3, help="races per races-per-minute figure")
+    parser.add_argument(
+        "--races", type=int, default=3, help="races per races-per-minute figure (0: none)"
+    )
     parser.add_argument("--blocks", type=int, default=10, help="interleaved blocks per step figure")
     parser.add_argument(
         "--modes", nargs="+", default=["bwrap", "seccomp"], choices=["bwrap", "seccomp"]

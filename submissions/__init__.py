@@ -7,6 +7,9 @@ module                      holds
                             validation before extraction
 :mod:`submissions.sandbox`  bubblewrap / seccomp sandboxes for one policy process
 :mod:`submissions.remote`   :class:`SandboxedPolicy`: a Policy living in a sandbox
+:mod:`submissions.protocol`  the frames a race and a sandboxed policy exchange
+:mod:`submissions.channel`  the shared memory and wake-up pipes the frames travel through
+:mod:`submissions.worker`   the program inside the sandbox: loads the policy, answers
 :mod:`submissions.jobs`     :class:`RaceJob` (plain data) and :func:`run_race_job`
 :mod:`submissions.executors`  local process pool and Ray executors
 :mod:`submissions.viser_replay`  ``.viser`` 3D replays from replay logs

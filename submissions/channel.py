@@ -29,11 +29,13 @@ so a worker could clear its ``O_NONBLOCK`` and saturate its counter, and the hos
 write would block for good; each end of a pipe is an open file of its own, whose flags the
 other side cannot touch.
 
-The host decodes a reply only from its own copies: the head first (:func:`frame_length`,
-which checks the header and bounds the length by the slot), then the whole frame
-(:func:`decode_frame` checks everything again on that copy). A worker scribbling in the
-slot meanwhile gets a refused frame or a wrong action (validated like any other), never a
-host fault, a read outside the slot or a blocked host.
+The host decodes a reply only from its own copy: one copy of the slot's first
+:data:`FIRST_COPY` bytes, which holds any action, OK or short text whole; a longer frame
+(the hello, an error's text) is bounded by the slot from that copy's header
+(:func:`frame_length`) and copied again whole, and everything is checked again on that
+second copy (:func:`decode_frame`). A worker scribbling in the slot meanwhile gets a
+refused frame or a wrong action (validated like any other), never a host fault, a read
+outside the slot or a blocked host.
 
 The worker's side, :class:`WorkerChannel`, waits on the ring and answers in the reply slot.
 """
@@ -88,7 +90,7 @@ def _read_frame(memory: mmap.mmap, start: int, room: int) -> Frame:
     if length > room:
         raise ProtocolError(f"a frame of {length} bytes in a {room}-byte slot")
     if length <= len(first):
-        return decode_frame(first[:length], room)
+        return decode_frame(first, room, trailing=True)
     return decode_frame(memory[start : start + length], room)
 
 
@@ -159,8 +161,10 @@ class Channel:
                 f"a request of {len(frame)} bytes does not fit the {self.request_bytes}-byte slot"
             )
         self.memory[: len(frame)] = frame
-        with contextlib.suppress(BlockingIOError):  # full: a wake-up is pending already
+        try:  # noqa: SIM105 - on every step's path, where suppress() costs a microsecond
             os.write(self.ring, _ONE)
+        except BlockingIOError:  # full: a wake-up is pending already
+            pass
 
     def reply_seq(self) -> int:
         """The sequence number the reply slot's header holds now (a peek, nothing checked)."""

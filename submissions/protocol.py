@@ -21,9 +21,9 @@ offset   type      field
 Text (error messages, the worker's hello) travels as a uint8 array of UTF-8 (JSON where it
 is structured). Every field is checked before a byte of payload is trusted: magic, kind,
 dtype, ndim, ``payload == prod(shape) × itemsize`` and the size cap; a reader decodes only
-its own copy of the bytes (:func:`frame_length` on a copy of the head, then
-:func:`decode_frame` on a copy of the whole frame), so a peer scribbling in the shared
-memory meanwhile can at most produce a wrong or refused frame. Nothing is unpickled, so a
+its own copy of the bytes (:func:`frame_length` tells how much to copy, :func:`decode_frame`
+decodes the copy), so a peer scribbling in the shared memory meanwhile can at most produce
+a wrong or refused frame. Nothing is unpickled, so a
 hostile peer can send at most a wrong array, which the receiver then validates.
 
 A session, host → worker: ``RESET`` (int64 ``[seed]``, or empty for no seed) is answered by
@@ -166,22 +166,20 @@ def frame_length(head: bytes, max_frame: int = MAX_FRAME) -> int:
     Raises:
         ProtocolError: a bad header, a payload over ``max_frame``, or ``head`` too short.
     """
-    if len(head) < HEADER.size:
-        raise ProtocolError(f"a frame header needs {HEADER.size} bytes, got {len(head)}")
-    _kind, _dtype, ndim, _seq, nbytes = parse_header(head[: HEADER.size], max_frame)
+    _kind, _dtype, ndim, _seq, nbytes = parse_header(head, max_frame)
     return HEADER.size + DIM.size * ndim + nbytes
 
 
-def decode_frame(data: bytes, max_frame: int = MAX_FRAME) -> Frame:
-    """The one frame that ``data`` holds, exactly (nothing before or after it).
+def decode_frame(data: bytes, max_frame: int = MAX_FRAME, *, trailing: bool = False) -> Frame:
+    """The frame that ``data`` holds: exactly all of ``data``, or with ``trailing`` its
+    start (a copy larger than the frame; what follows the frame is ignored).
 
     Raises:
         ProtocolError: a bad header, a shape that does not match the payload, an axis or a
-            payload over ``max_frame``, or ``data`` longer or shorter than the frame.
+            payload over ``max_frame``, ``data`` shorter than the frame, or (without
+            ``trailing``) longer.
     """
-    if len(data) < HEADER.size:
-        raise ProtocolError(f"a frame header needs {HEADER.size} bytes, got {len(data)}")
-    kind, dtype, ndim, seq, nbytes = parse_header(data[: HEADER.size], max_frame)
+    kind, dtype, ndim, seq, nbytes = parse_header(data, max_frame)
     head = HEADER.size + DIM.size * ndim
     if len(data) < head:
         raise ProtocolError(f"a frame header of {head} bytes in {len(data)} bytes")
@@ -190,10 +188,10 @@ def decode_frame(data: bytes, max_frame: int = MAX_FRAME) -> Frame:
     # which numpy refuses with a ValueError), and the product must match the payload.
     if max(shape, default=0) > max_frame or math.prod(shape) * dtype.itemsize != nbytes:
         raise ProtocolError(f"frame shape {shape} of {dtype} does not match {nbytes} bytes")
-    if len(data) != head + nbytes:
+    if len(data) != head + nbytes and not (trailing and len(data) > head + nbytes):
         raise ProtocolError(f"a frame of {head + nbytes} bytes in {len(data)} bytes")
     try:
-        array = np.frombuffer(data, dtype=dtype, offset=head)
+        array = np.frombuffer(data, dtype=dtype, count=math.prod(shape), offset=head)
         if ndim != 1:
             array = array.reshape(shape)
     except ValueError as err:  # belt and braces: never let numpy's error escape
@@ -204,12 +202,16 @@ def decode_frame(data: bytes, max_frame: int = MAX_FRAME) -> Frame:
 def parse_header(
     header: bytes, max_frame: int = MAX_FRAME
 ) -> tuple[Kind, np.dtype[Any], int, int, int]:
-    """Check a 16-byte header; return ``(kind, dtype, ndim, sequence, payload bytes)``.
+    """Check the 16-byte header that ``header`` starts with; return ``(kind, dtype, ndim,
+    sequence, payload bytes)``.
 
     Raises:
-        ProtocolError: bad magic, kind, dtype code or ndim, or a payload over ``max_frame``.
+        ProtocolError: bad magic, kind, dtype code or ndim, a payload over ``max_frame``, or
+            fewer than 16 bytes.
     """
-    magic, code_kind, code, ndim, seq, nbytes = HEADER.unpack(header)
+    if len(header) < HEADER.size:
+        raise ProtocolError(f"a frame header needs {HEADER.size} bytes, got {len(header)}")
+    magic, code_kind, code, ndim, seq, nbytes = HEADER.unpack_from(header)
     if magic != MAGIC:
         raise ProtocolError(f"bad frame magic {magic!r}")
     kind = _KINDS.get(code_kind)

@@ -258,9 +258,10 @@ def _pump(me: SandboxedPolicy, timeout: float) -> None:
     take and timestamp every reply that came."""
     with _WAITING_LOCK:
         others = [p for p in _WAITING if p is not me and p._bell >= 0]
-    if others:
+    if others or me._bell < 0:
         members = {p._bell: p for p in others}
-        members[me._bell] = me
+        if me._bell >= 0:
+            members[me._bell] = me
         poller = select.poll()
         for fd in members:
             poller.register(fd, select.POLLIN)
@@ -295,7 +296,8 @@ def _surely_within(
     and anything it does not accept is ``action_problem``'s call."""
     if arr.shape != bounds[0] or arr.dtype.kind not in "fiu":
         return False
-    for value, low, high in zip(arr.ravel().tolist(), bounds[1], bounds[2], strict=True):
+    values = arr.tolist() if arr.ndim == 1 else arr.ravel().tolist()
+    for value, low, high in zip(values, bounds[1], bounds[2], strict=True):
         if not low <= value <= high:
             return False
     return True
@@ -747,8 +749,15 @@ class SandboxedPolicy:
 
     def _gone(self, what: str) -> NoReturn:
         """Its end of the channel closed: it exited (crash), or, still running, closed the
-        channel itself (invalid). Waits at most :data:`EXIT_WAIT_S` to tell which."""
-        status = self._proc.wait(EXIT_WAIT_S) if self._proc is not None else None
+        channel itself (invalid). Waits at most :data:`EXIT_WAIT_S` to tell which, taking
+        the replies of the other cars meanwhile (their clocks are theirs, not its)."""
+        status = None
+        end = time.monotonic() + EXIT_WAIT_S
+        while self._proc is not None and (status := self._proc.poll()) is None:
+            left = end - time.monotonic()
+            if left <= 0:
+                break
+            _pump(self, min(left, 0.02))
         if status is None:
             self._fail(
                 PolicyInvalid(
@@ -773,7 +782,7 @@ class SandboxedPolicy:
             capped = cap_text(text, MAX_DETAIL)
             self.failure = failure if capped == text else type(failure)(capped)
         if self._proc is not None:
-            self._proc.kill()
+            self._proc.stop()  # at once: shutdown() reaps it, off the other cars' clocks
         raise self.failure
 
 

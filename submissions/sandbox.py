@@ -534,12 +534,15 @@ class CgroupCaps:
         return found
 
     def kill_all(self, patience_s: float = 5.0) -> None:
-        """SIGKILL every process in the cgroups until none is left (a fork bomb included)."""
+        """SIGKILL every process in the cgroups until none is left (a fork bomb included),
+        for at most ``patience_s`` s (0: one pass, no waiting)."""
         end = time.monotonic() + patience_s
-        while (pids := self.pids()) and time.monotonic() < end:
+        while pids := self.pids():
             for pid in pids:
                 with contextlib.suppress(ProcessLookupError, PermissionError):
                     os.kill(pid, signal.SIGKILL)
+            if time.monotonic() >= end:
+                return
             time.sleep(0.01)
 
     def remove(self) -> None:
@@ -1042,6 +1045,14 @@ class SandboxProcess:
             return self.proc.wait(timeout)
         except subprocess.TimeoutExpired:
             return None
+
+    def stop(self) -> None:
+        """SIGKILL the whole tree now and return at once (the group, and one pass over its
+        cgroups); :meth:`kill` later waits for it and removes what is left. For a race that
+        retires a car while others wait on their deadlines."""
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            os.killpg(self.proc.pid, signal.SIGKILL)
+        self.cgroups.kill_all(patience_s=0.0)
 
     def kill(self) -> None:
         """SIGKILL the whole tree (group, cgroups; bwrap takes its pid namespace down too),

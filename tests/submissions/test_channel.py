@@ -359,9 +359,12 @@ class FakeProcess:
         self.thread.join(timeout)
         return self.poll()
 
-    def kill(self) -> None:
+    def stop(self) -> None:
         self.killed = True
         self.worker.killed.set()
+
+    def kill(self) -> None:
+        self.stop()
 
 
 @pytest.fixture

@@ -293,14 +293,17 @@ def test_attacks_on_the_channel_are_contained(mode: str, make_python_bundle: Mak
     """Wake-ups ahead of time, a flood of them, a reply never rung in, closed pipe ends,
     garbage scribbled over the reply slot while the host reads it, and the sealed region
     resized or mapped past its end: each retires its own car with the right reason (the
-    closed channel after EXIT_WAIT_S), the pursuit car finishes, the host never waits
-    longer than a deadline, and the region kept its size."""
+    closed channel after EXIT_WAIT_S), the pursuit car and an honest sandboxed car finish
+    (with a 1 s bank: the host's waits on the attackers — EXIT_WAIT_S included — are not
+    charged to it), and the region kept its size."""
     bodies = {name: attack(body) for name, (body, _, _) in TIMING.items()}
+    bodies["honest"] = attack("class Policy(Driver):\n    pass\n")
     outcome, policies, took = race_many(bodies, make_python_bundle, QUICK)
     for name, (_, reason, word) in TIMING.items():
         status, got, detail = outcome[name]
         assert (status, got) == ("dnf", reason), (name, detail, policies[name].output[-1500:])
         assert word in detail, (name, detail)
+    assert outcome["honest"][0] == "finished", (outcome["honest"], policies["honest"].stats)
     out = policies["past-the-region"].output
     line = next(x for x in out.splitlines() if x.startswith("ATTACKS "))
     results = json.loads(line[len("ATTACKS ") :])
