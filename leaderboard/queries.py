@@ -955,6 +955,11 @@ def track_detail(
     )
 
 
+def track_was_raced(session: Session, name: str) -> bool:
+    """Whether any race (any kind or status) is on track ``name`` (one index look-up)."""
+    return session.scalar(select(Race.id).where(Race.track == name).limit(1)) is not None
+
+
 def _track_detail(
     session: Session, name: str, known: Sequence[str] | None, limit: int
 ) -> TrackDetail:

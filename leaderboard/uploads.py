@@ -26,6 +26,7 @@ import secrets
 import shutil
 import tempfile
 import time
+import zipfile
 from datetime import timedelta
 from pathlib import Path
 from typing import BinaryIO
@@ -45,7 +46,7 @@ from leaderboard.errors import (
 from leaderboard.matchmaking import schedule_validation
 from leaderboard.models import Submission, SubmissionVersion, User, utcnow
 from leaderboard.settings import Settings
-from submissions.bundle import BundleLimits, EnvSpec, Manifest, open_bundle
+from submissions.bundle import MANIFEST_NAME, BundleLimits, EnvSpec, Manifest, open_bundle
 from submissions.errors import BundleError
 
 BASELINES = ("pursuit", "gap", "random")
@@ -53,6 +54,11 @@ _CHUNK = 1 << 20
 QUOTA_WINDOW = timedelta(days=1)
 _DB_RETRIES = 5  # tries of an upload's database part when a concurrent upload wins a race
 UPLOAD_NAME = "the uploaded bundle"  # how errors name the file (never the server's temp path)
+# Said when a zip without manifest.json comes in: most often a bare checkpoint (issue 13).
+NOT_A_BUNDLE_HINT = (
+    "; a bundle is a zip with manifest.json next to the policy — for a bare checkpoint, "
+    "`slipstream submit CHECKPOINT.zip` wraps it (or run `slipstream bundle wrap CHECKPOINT.zip`)"
+)
 
 
 def save_stream(src: BinaryIO, dest: Path, max_bytes: int) -> tuple[int, str]:
@@ -91,8 +97,19 @@ def validate_bundle(path: Path, settings: Settings) -> Manifest:
             for private in (str(path.resolve()), str(path), str(Path(tmp).resolve()), tmp):
                 message = message.replace(private, UPLOAD_NAME)
             message = message.replace(path.name, UPLOAD_NAME)
+            if _zip_without_manifest(path):
+                message += NOT_A_BUNDLE_HINT
             raise InvalidBundle(f"invalid bundle: {message}") from None
     return bundle.manifest
+
+
+def _zip_without_manifest(path: Path) -> bool:
+    """Whether ``path`` is a readable zip with no ``manifest.json`` at its root."""
+    try:
+        with zipfile.ZipFile(path) as zf:
+            return MANIFEST_NAME not in zf.namelist()
+    except (zipfile.BadZipFile, OSError, ValueError):
+        return False
 
 
 def check_daily_quota(session: Session, settings: Settings, user: User) -> None:

@@ -349,8 +349,14 @@ def track_page(
 
 
 @web_router.get("/tracks/{name}/plot.png")
-def track_plot(request: Request, settings: SettingsDep, name: str) -> Response:
-    """The track seen from above (PNG, drawn once and cached in the data folder)."""
+def track_plot(request: Request, session: SessionDep, settings: SettingsDep, name: str) -> Response:
+    """The track seen from above (PNG, drawn once and cached in the data folder).
+
+    Only tracks the site shows: the race pool and tracks a race was run on. A picture costs
+    ~0.5 s of CPU, so no visitor can make the server draw one generated seed after another.
+    """
+    if name not in track_pool(settings) and not queries.track_was_raced(session, name):
+        raise NotFound(f"no track {name!r}")
     path = track_image(name, settings.data_dir, max_random=settings.random_track_images)
     return FileResponse(path, media_type="image/png", headers={"cache-control": "max-age=86400"})
 

@@ -14,7 +14,8 @@ import pytest
 from fastapi.testclient import TestClient
 
 from leaderboard.app import create_app
-from leaderboard.models import Submission
+from leaderboard.models import Race, Submission
+from leaderboard.settings import Settings
 from leaderboard.web import charts
 from leaderboard.web.pages import viewer_url
 from tests.leaderboard.site_data import Site, seed_site
@@ -345,11 +346,23 @@ def test_track_plot_is_a_cached_png(client: TestClient, site: Site) -> None:
     assert (site.settings.data_dir / "cache" / "tracks" / "oval.png").is_file()
 
 
-def test_generated_tracks_get_plots_too(client: TestClient, site: Site) -> None:
-    response = client.get("/tracks/random%3A3/plot.png")
-    assert response.status_code == 200 and response.content[:4] == b"\x89PNG"
-    cached = list((site.settings.data_dir / "cache" / "tracks").glob("random-*.png"))
-    assert len(cached) == 1  # named by a hash of the spec, never by the spec itself
+def test_generated_tracks_get_plots_too(tmp_path: Path) -> None:
+    """A generated track in the race pool, or one a race was run on, has a picture; any other
+    seed is a 404 without drawing anything (a picture costs ~0.5 s of CPU)."""
+    settings = Settings(data_dir=tmp_path / "data", tracks=["oval", "random:3"])
+    app = create_app(settings)
+    with TestClient(app) as c:
+        response = c.get("/tracks/random%3A3/plot.png")
+        assert response.status_code == 200 and response.content[:4] == b"\x89PNG"
+        cached = list((settings.data_dir / "cache" / "tracks").glob("random-*.png"))
+        assert len(cached) == 1  # named by a hash of the spec, never by the spec itself
+        assert c.get("/tracks/random%3A5/plot.png").status_code == 404
+        session = app.state.sessionmaker()
+        session.add(Race(kind="ranked", track="random:5", seed=1, laps=1))
+        session.commit()
+        session.close()
+        assert c.get("/tracks/random%3A5/plot.png").status_code == 200
+    assert len(list((settings.data_dir / "cache" / "tracks").glob("random-*.png"))) == 2
 
 
 @pytest.mark.parametrize(

@@ -668,6 +668,21 @@ def test_bundle_errors_do_not_name_server_files(client: TestClient, alice: Accou
     assert "the uploaded bundle" in detail or "zip" in detail
 
 
+def test_a_bare_checkpoint_upload_gets_a_hint(client: TestClient, alice: Account) -> None:
+    """The shipped PPO checkpoint posted as it is (curl, not `slipstream submit`)."""
+    shipped = Path(__file__).resolve().parents[2] / "agents" / "data" / "ppo_racer.zip"
+    with shipped.open("rb") as f:
+        r = client.post(
+            "/api/submissions",
+            headers=alice.headers,
+            files={"file": ("ppo_racer.zip", f, "application/zip")},
+        )
+    assert r.status_code == 422
+    detail = r.json()["detail"]
+    assert "no manifest.json" in detail and "slipstream submit" in detail
+    assert "bundle wrap" in detail and str(shipped.parent) not in detail
+
+
 def test_random_track_pictures_are_bounded(tmp_path: Path, client: TestClient) -> None:
     from leaderboard.web.trackplots import track_image
     from tracks.errors import TrackError
