@@ -430,8 +430,9 @@ class RacingEnv(RaceEpisodeEnv):
             self.lidar.max_range,
             p.max_speed,
         )
-        ahead_s = (proj.s[:, None] + self._lookahead).ravel()
-        points = self.track.to_cartesian(np.stack([ahead_s, np.zeros_like(ahead_s)], axis=1))
+        frenet = np.zeros((self.n_cars * len(LOOKAHEAD), 2))  # [s, d = 0] of each point
+        frenet[:, 0] = (proj.s[:, None] + self._lookahead).ravel()
+        points = self.track.to_cartesian(frenet)
         ahead = track_ahead_features(
             state.poses, points.reshape(self.n_cars, -1, 2), self.lidar.max_range
         )

@@ -193,11 +193,12 @@ def car_corners(poses: FloatArray, length: float, width: float) -> FloatArray:
     Order: front-left, rear-left, rear-right, front-right (counter-clockwise).
     """
     hl, hw = 0.5 * length, 0.5 * width
-    local = np.array([[hl, hw], [-hl, hw], [-hl, -hw], [hl, -hw]])
+    lx, ly = np.array([hl, -hl, -hl, hl]), np.array([hw, hw, -hw, -hw])  # car frame, m
     cos, sin = np.cos(poses[:, 2])[:, None], np.sin(poses[:, 2])[:, None]
-    x = poses[:, 0:1] + cos * local[:, 0] - sin * local[:, 1]
-    y = poses[:, 1:2] + sin * local[:, 0] + cos * local[:, 1]
-    return np.stack([x, y], axis=-1)
+    out = np.empty((len(poses), 4, 2))
+    out[..., 0] = poses[:, 0:1] + cos * lx - sin * ly
+    out[..., 1] = poses[:, 1:2] + sin * lx + cos * ly
+    return out
 
 
 def drive_force(throttle: float, v_long: float, p: CarParams, motor: float, mass: float) -> float:
@@ -483,13 +484,14 @@ class Simulator:
     def _read(self) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Positions (n, 3), quaternions (n, 4) and velocities (n, 6) [lin, ang] of all cars."""
         c, get_pose, get_vel = self.client, pb.getBasePositionAndOrientation, pb.getBaseVelocity
-        poses = [get_pose(body, c) for body in self.cars]
-        vels = [get_vel(body, c) for body in self.cars]
-        # One array from nested tuples is much cheaper than filling rows one by one.
-        pos = np.array([p_ for p_, _ in poses], dtype=np.float64)
-        quat = np.array([q_ for _, q_ in poses], dtype=np.float64)
-        vel = np.array([lin + ang for lin, ang in vels], dtype=np.float64)
-        return pos, quat, vel
+        rows = []
+        for body in self.cars:
+            pos, quat = get_pose(body, c)
+            lin, ang = get_vel(body, c)
+            rows.append(pos + quat + lin + ang)
+        # One array from flat tuples is much cheaper than several, or filling rows one by one.
+        table = np.array(rows, dtype=np.float64)  # (n, 13)
+        return table[:, 0:3].copy(), table[:, 3:7], table[:, 7:13]
 
     def _observe(self, wall: BoolArray, cars: BoolArray) -> SimState:
         pos, quat, vel = self._read()
