@@ -14,7 +14,8 @@ import pytest
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from leaderboard import queue
+from leaderboard import auth, queue, uploads
+from leaderboard.matchmaking import RANKED_PRIORITY
 from leaderboard.models import (
     SIGMA0,
     Job,
@@ -97,6 +98,8 @@ def test_a_live_lease_on_its_last_attempt_survives_expire(db: Session, settings:
     assert queue.expire(db, now=utcnow() + timedelta(seconds=120)) == 1
     db.expire_all()
     assert db.get(Job, lease.job_id).status == "failed"  # type: ignore[union-attr]
+    # Failed is final: a later expire() finds nothing to fail again (its lease time is old).
+    assert queue.expire(db, now=utcnow() + timedelta(seconds=240)) == 0
 
 
 def test_an_expired_lease_with_attempts_left_is_reclaimed_not_failed(
@@ -119,7 +122,10 @@ def test_a_heartbeat_keeps_the_job_unclaimable(db: Session, settings: Settings) 
     _race(db, subs, [0, 1])
     lease = queue.claim(db, owner="w1", lease_s=1)
     assert lease is not None
+    before = utcnow().replace(tzinfo=None)
     assert queue.heartbeat(db, lease, lease_s=600)
+    beat = db.get(Job, lease.job_id)
+    assert beat is not None and beat.updated_at.replace(tzinfo=None) >= before  # seen alive
     later = utcnow() + timedelta(seconds=30)
     assert queue.claim(db, owner="w2", lease_s=60, now=later) is None
     job = db.get(Job, lease.job_id)
@@ -253,3 +259,66 @@ def test_queue_stats_count_every_status_from_zero(db: Session, settings: Setting
             assert queue.complete(db, nxt, factories.fake_result(race))
     assert queue.stats(db) == {"queued": 0, "leased": 0, "done": 4, "failed": 1}
     assert queue.pending(db) == 0
+
+
+def test_a_lease_holds_up_to_its_expiry_instant(db: Session, settings: Settings) -> None:
+    # Expired means strictly past the expiry time, for taking a job over and for failing it.
+    subs = _subs(db, settings, 2)
+    race = _race(db, subs, [0, 1])
+    job = db.scalar(select(Job).where(Job.race_id == race.id))
+    assert job is not None
+    job.max_attempts = 2
+    db.commit()
+    lease = queue.claim(db, owner="w1", lease_s=30)
+    assert lease is not None
+    assert queue.claim(db, owner="w2", lease_s=30, now=lease.expires_at) is None
+    later = lease.expires_at + timedelta(microseconds=1)
+    second = queue.claim(db, owner="w2", lease_s=30, now=later)
+    assert second is not None and second.attempt == 2  # its last attempt
+    assert queue.expire(db, now=second.expires_at) == 0
+    assert queue.expire(db, now=second.expires_at + timedelta(microseconds=1)) == 1
+
+
+def test_a_finished_job_with_a_stale_lease_time_is_never_claimed(
+    db: Session, settings: Settings
+) -> None:
+    # Only a *leased* job can be taken over: a done job whose row still carries a lease time
+    # (written by an older worker, or a manual repair) stays done.
+    subs = _subs(db, settings, 2)
+    race = _race(db, subs, [0, 1])
+    _run(db, race, order=[0, 1])
+    job = db.scalar(select(Job).where(Job.race_id == race.id))
+    assert job is not None and job.status == "done"
+    job.lease_expires_at = utcnow() - timedelta(hours=1)
+    db.commit()
+    assert queue.claim(db, owner="w", lease_s=60) is None
+    assert queue.expire(db) == 0
+
+
+def test_a_validation_race_lost_on_its_last_attempt_rejects_the_version(
+    db: Session, settings: Settings
+) -> None:
+    settings.ensure_dirs()
+    user, _ = auth.create_user(db, name="lost")
+    version = uploads.add_baseline(db, settings, user=user, baseline="pursuit", name="lost")
+    db.commit()
+    job = db.scalar(select(Job).join(Race).where(Race.kind == "validation"))
+    assert job is not None
+    job.max_attempts = 1
+    db.commit()
+    lease = queue.claim(db, owner="w", lease_s=30)
+    assert lease is not None and lease.race_id == job.race_id
+    assert queue.expire(db, now=lease.expires_at + timedelta(seconds=1)) == 1
+    db.expire_all()
+    got = db.get(SubmissionVersion, version.id)
+    assert got is not None and got.status == "rejected"
+    assert got.error is not None and "failed" in got.error and "lease lost" in got.error
+    sub = db.get(Submission, version.submission_id)
+    assert sub is not None and sub.status == "rejected"  # it has no validated version
+
+
+def test_a_race_queued_without_a_priority_is_a_ranked_one(db: Session, settings: Settings) -> None:
+    subs = _subs(db, settings, 2)
+    race = _race(db, subs, [0, 1])  # enqueue(session, race): the defaults
+    job = db.scalar(select(Job).where(Job.race_id == race.id))
+    assert job is not None and job.priority == RANKED_PRIORITY and job.max_attempts == 3
