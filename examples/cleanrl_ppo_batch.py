@@ -23,7 +23,7 @@ import dataclasses
 import random
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import torch
@@ -32,41 +32,58 @@ from torch.distributions.normal import Normal
 
 from arena.batch import BatchSim
 
+_T = TypeVar("_T")
+
+
+def flag(default: _T, help: str) -> _T:
+    """An :class:`Args` field; ``help`` is its ``--help`` text."""
+    return dataclasses.field(default=default, metadata={"help": help})
+
 
 @dataclass
 class Args:
     """Command-line arguments (``--total-timesteps 8192`` etc.)."""
 
-    seed: int = 1  # seeds python, numpy, torch and the simulator's start draws
-    torch_deterministic: bool = True  # torch.backends.cudnn.deterministic
-    threads: int = 1  # torch CPU threads: one is fastest for networks this small
-    track: str = "oval"  # built-in name, file or random:<seed>
-    device: str = "numpy"  # simulator arrays: numpy, torch:cpu, cuda
-    n_envs: int = 16  # races stepped together
-    n_cars: int = 2  # cars per race, all driven by the policy
-    total_timesteps: int = 4096  # agent-steps (cars × control steps) in all
-    learning_rate: float = 3e-4
-    num_steps: int = 64  # control steps per rollout
-    gamma: float = 0.99
-    gae_lambda: float = 0.95
-    num_minibatches: int = 4
-    update_epochs: int = 4
-    clip_coef: float = 0.2
-    ent_coef: float = 0.0
-    vf_coef: float = 0.5
-    max_grad_norm: float = 0.5
-    dnf_penalty: float = 10.0  # subtracted when a car retires (stuck, off the track)
+    seed: int = flag(1, "seeds python, numpy, torch and the simulator's start draws")
+    torch_deterministic: bool = flag(True, "torch.backends.cudnn.deterministic")
+    threads: int = flag(1, "torch CPU threads: one is fastest for networks this small")
+    track: str = flag("oval", "built-in name, file or random:<seed>")
+    device: str = flag("numpy", "simulator arrays: numpy, torch:cpu, cuda")
+    n_envs: int = flag(16, "races stepped together")
+    n_cars: int = flag(2, "cars per race, all driven by the policy")
+    total_timesteps: int = flag(4096, "agent-steps (cars × control steps) in all")
+    learning_rate: float = flag(3e-4, "Adam step size")
+    num_steps: int = flag(64, "control steps per rollout")
+    gamma: float = flag(0.99, "discount factor")
+    gae_lambda: float = flag(0.95, "GAE lambda")
+    num_minibatches: int = flag(4, "minibatches per rollout")
+    update_epochs: int = flag(4, "passes over each rollout")
+    clip_coef: float = flag(0.2, "PPO clip range")
+    ent_coef: float = flag(0.0, "entropy bonus coefficient")
+    vf_coef: float = flag(0.5, "value loss coefficient")
+    max_grad_norm: float = flag(0.5, "gradient clipping norm")
+    dnf_penalty: float = flag(10.0, "subtracted when a car retires (stuck, off the track)")
 
 
 def parse_args(argv: list[str] | None = None) -> Args:
     """``--flag value`` for every :class:`Args` field."""
-    parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
+    parser = argparse.ArgumentParser(
+        description=(__doc__ or "").splitlines()[0],
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
     for f in dataclasses.fields(Args):
         flag = "--" + f.name.replace("_", "-")
         if isinstance(f.default, bool):
-            parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=f.default)
+            parser.add_argument(
+                flag,
+                action=argparse.BooleanOptionalAction,
+                default=f.default,
+                help=f.metadata["help"],
+            )
         else:
-            parser.add_argument(flag, type=type(f.default), default=f.default)
+            parser.add_argument(
+                flag, type=type(f.default), default=f.default, help=f.metadata["help"]
+            )
     return Args(**vars(parser.parse_args(argv)))
 
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
 
 import ray
 from ray.rllib.algorithms.ppo import PPOConfig
@@ -28,31 +28,44 @@ import arena
 ENV_NAME = "slipstream_race"
 SHARED = "shared"
 
+_T = TypeVar("_T")
+
+
+def flag(default: _T, help: str) -> _T:
+    """An :class:`Args` field; ``help`` is its ``--help`` text."""
+    return dataclasses.field(default=default, metadata={"help": help})
+
 
 @dataclass
 class Args:
     """Command-line arguments (``--iterations 1`` etc.)."""
 
-    seed: int = 1
-    track: str = "oval"
-    backend: str = "pybullet"  # or "batch"
-    n_cars: int = 2  # every car is driven by the shared policy
-    iterations: int = 1  # algo.train() calls
-    total_timesteps: int = 0  # if > 0: train until this many env steps (overrides iterations)
-    num_env_runners: int = 0  # 0: sample in this process
-    train_batch_size: int = 256  # agent-steps per iteration
-    minibatch_size: int = 64
-    num_epochs: int = 2
-    rollout_fragment_length: int = 64
-    learning_rate: float = 3e-4
+    seed: int = flag(1, "seeds python, numpy, torch and the races")
+    track: str = flag("oval", "built-in name, track file or random:<seed>")
+    backend: str = flag("pybullet", "simulator: pybullet, or batch (the vectorised one, B = 1)")
+    n_cars: int = flag(2, "cars per race, every one driven by the shared policy")
+    iterations: int = flag(1, "training iterations (algo.train() calls)")
+    total_timesteps: int = flag(0, "if > 0: train until this many env steps (overrides iterations)")
+    num_env_runners: int = flag(0, "remote env runners; 0 samples in this process")
+    train_batch_size: int = flag(256, "agent-steps per iteration")
+    minibatch_size: int = flag(64, "agent-steps per SGD minibatch")
+    num_epochs: int = flag(2, "passes over each train batch")
+    rollout_fragment_length: int = flag(64, "agent-steps each env runner samples at a time")
+    learning_rate: float = flag(3e-4, "Adam step size")
 
 
 def parse_args(argv: list[str] | None = None) -> Args:
     """``--flag value`` for every :class:`Args` field."""
-    parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
+    parser = argparse.ArgumentParser(
+        description=(__doc__ or "").splitlines()[0],
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
     for f in dataclasses.fields(Args):
         parser.add_argument(
-            "--" + f.name.replace("_", "-"), type=type(f.default), default=f.default
+            "--" + f.name.replace("_", "-"),
+            type=type(f.default),
+            default=f.default,
+            help=f.metadata["help"],
         )
     return Args(**vars(parser.parse_args(argv)))
 

@@ -16,7 +16,7 @@ import argparse
 import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import gymnasium
 import numpy as np
@@ -29,31 +29,46 @@ from stable_baselines3.common.logger import KVWriter, Logger
 import agents  # registers slipstream/Race-v0
 from agents.checkpoint import export_sb3
 
+_T = TypeVar("_T")
+
+
+def flag(default: _T, help: str) -> _T:
+    """An :class:`Args` field; ``help`` is its ``--help`` text."""
+    return dataclasses.field(default=default, metadata={"help": help})
+
 
 @dataclass
 class Args:
     """Command-line arguments (``--total-timesteps 2048`` etc.)."""
 
-    seed: int = 1
-    track: str = "oval"
-    opponents: str = "pursuit"  # comma-separated baselines or checkpoint paths; "" = time trial
-    backend: str = "pybullet"  # or "batch" (the vectorised simulator, B = 1)
-    n_envs: int = 2  # env copies in SB3's DummyVecEnv
-    total_timesteps: int = 512
-    n_steps: int = 128  # per env copy and rollout
-    batch_size: int = 64
-    n_epochs: int = 4
-    learning_rate: float = 3e-4
-    threads: int = 1  # torch CPU threads: one is fastest for networks this small
-    out: str = ""  # folder for model.zip and policy.zip; "" saves nothing
+    seed: int = flag(1, "seeds python, numpy, torch and the races")
+    track: str = flag("oval", "built-in name, track file or random:<seed>")
+    opponents: str = flag(
+        "pursuit", "comma-separated baselines or checkpoint paths; '' = time trial"
+    )
+    backend: str = flag("pybullet", "simulator: pybullet, or batch (the vectorised one, B = 1)")
+    n_envs: int = flag(2, "env copies in SB3's DummyVecEnv")
+    total_timesteps: int = flag(512, "agent-steps to train for")
+    n_steps: int = flag(128, "control steps per env copy and rollout")
+    batch_size: int = flag(64, "minibatch size, samples")
+    n_epochs: int = flag(4, "passes over each rollout")
+    learning_rate: float = flag(3e-4, "Adam step size")
+    threads: int = flag(1, "torch CPU threads: one is fastest for networks this small")
+    out: str = flag("", "folder for model.zip and policy.zip; '' saves nothing")
 
 
 def parse_args(argv: list[str] | None = None) -> Args:
     """``--flag value`` for every :class:`Args` field."""
-    parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
+    parser = argparse.ArgumentParser(
+        description=(__doc__ or "").splitlines()[0],
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
     for f in dataclasses.fields(Args):
         parser.add_argument(
-            "--" + f.name.replace("_", "-"), type=type(f.default), default=f.default
+            "--" + f.name.replace("_", "-"),
+            type=type(f.default),
+            default=f.default,
+            help=f.metadata["help"],
         )
     return Args(**vars(parser.parse_args(argv)))
 

@@ -20,7 +20,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
 
 import supersuit as ss
 import torch
@@ -31,31 +31,44 @@ from stable_baselines3.common.vec_env import VecMonitor
 
 import arena
 
+_T = TypeVar("_T")
+
+
+def flag(default: _T, help: str) -> _T:
+    """An :class:`Args` field; ``help`` is its ``--help`` text."""
+    return dataclasses.field(default=default, metadata={"help": help})
+
 
 @dataclass
 class Args:
     """Command-line arguments (``--total-timesteps 2048`` etc.)."""
 
-    seed: int = 1
-    track: str = "oval"
-    backend: str = "pybullet"  # or "batch"
-    n_cars: int = 2  # cars per race, all driven by the shared policy
-    num_vec_envs: int = 2  # env copies (each one its own simulator)
-    num_cpus: int = 0  # subprocesses for the copies; 0 steps them in this process
-    total_timesteps: int = 512
-    n_steps: int = 64  # per slot and rollout
-    batch_size: int = 64
-    n_epochs: int = 4
-    learning_rate: float = 3e-4
-    threads: int = 1  # torch CPU threads: one is fastest for networks this small
+    seed: int = flag(1, "seeds python, numpy, torch and the races")
+    track: str = flag("oval", "built-in name, track file or random:<seed>")
+    backend: str = flag("pybullet", "simulator: pybullet, or batch (the vectorised one, B = 1)")
+    n_cars: int = flag(2, "cars per race, all driven by the shared policy")
+    num_vec_envs: int = flag(2, "env copies (each one its own simulator)")
+    num_cpus: int = flag(0, "subprocesses for the copies; 0 steps them in this process")
+    total_timesteps: int = flag(512, "agent-steps to train for")
+    n_steps: int = flag(64, "control steps per slot and rollout")
+    batch_size: int = flag(64, "minibatch size, samples")
+    n_epochs: int = flag(4, "passes over each rollout")
+    learning_rate: float = flag(3e-4, "Adam step size")
+    threads: int = flag(1, "torch CPU threads: one is fastest for networks this small")
 
 
 def parse_args(argv: list[str] | None = None) -> Args:
     """``--flag value`` for every :class:`Args` field."""
-    parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
+    parser = argparse.ArgumentParser(
+        description=(__doc__ or "").splitlines()[0],
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
     for f in dataclasses.fields(Args):
         parser.add_argument(
-            "--" + f.name.replace("_", "-"), type=type(f.default), default=f.default
+            "--" + f.name.replace("_", "-"),
+            type=type(f.default),
+            default=f.default,
+            help=f.metadata["help"],
         )
     return Args(**vars(parser.parse_args(argv)))
 
