@@ -9,9 +9,12 @@ version restarts its σ; a slower lap never replaces a track record.
 from __future__ import annotations
 
 from datetime import timedelta
+from types import SimpleNamespace
+from typing import Any
 
 import pytest
 from sqlalchemy import select
+from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import Session
 
 from leaderboard import auth, queue, uploads
@@ -322,3 +325,52 @@ def test_a_race_queued_without_a_priority_is_a_ranked_one(db: Session, settings:
     race = _race(db, subs, [0, 1])  # enqueue(session, race): the defaults
     job = db.scalar(select(Job).where(Job.race_id == race.id))
     assert job is not None and job.priority == RANKED_PRIORITY and job.max_attempts == 3
+
+
+class _Flaky:
+    """Stands in for ``queue._claim_once``: raises SQLite's "database is locked" ``fails``
+    times, then claims for real."""
+
+    def __init__(self, fails: int) -> None:
+        self.fails, self.calls = fails, 0
+        self.real = queue._claim_once
+
+    def __call__(self, session: Session, **kw: Any) -> queue.Lease | None:
+        self.calls += 1
+        if self.calls <= self.fails:
+            raise OperationalError("UPDATE jobs ...", {}, Exception("database is locked"))
+        return self.real(session, **kw)
+
+
+def test_a_locked_sqlite_claim_is_retried_with_growing_waits_then_gives_up(
+    db: Session, settings: Settings, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    subs = _subs(db, settings, 2)
+    race = _race(db, subs, [0, 1])
+    waits: list[float] = []
+    monkeypatch.setattr(queue.time, "sleep", waits.append)
+    flaky = _Flaky(fails=2)
+    monkeypatch.setattr(queue, "_claim_once", flaky)
+    lease = queue.claim(db, owner="w", lease_s=30)
+    assert lease is not None and lease.race_id == race.id
+    assert flaky.calls == 3 and len(waits) == 2 and 0 < waits[0] < waits[1]
+    # Locked every time: the error surfaces after the last retry, not a silent None.
+    stuck = _Flaky(fails=10**6)
+    monkeypatch.setattr(queue, "_claim_once", stuck)
+    with pytest.raises(OperationalError):
+        queue.claim(db, owner="w", lease_s=30)
+    assert stuck.calls == queue._SQLITE_RETRIES
+
+
+def test_a_failed_claim_on_postgresql_is_not_retried(
+    db: Session, settings: Settings, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # SKIP LOCKED never waits there: an OperationalError is a real error, raised at once.
+    postgres = SimpleNamespace(dialect=SimpleNamespace(name="postgresql"))
+    monkeypatch.setattr(db, "get_bind", lambda *a, **k: postgres)
+    monkeypatch.setattr(queue.time, "sleep", lambda s: pytest.fail("slept before raising"))
+    flaky = _Flaky(fails=1)
+    monkeypatch.setattr(queue, "_claim_once", flaky)
+    with pytest.raises(OperationalError):
+        queue.claim(db, owner="w", lease_s=30)
+    assert flaky.calls == 1
