@@ -568,8 +568,8 @@ def _batch_vec_env(
     seed = args.seed if seed is None else seed
     groups = procedural_groups(args) if procedural else 0
     rng = np.random.default_rng([seed, 7])
-    procedural = procedural_of(args)
-    generated = [procedural.draw(rng) for _ in range(groups)]
+    draw = procedural_of(args).draw
+    generated = [draw(rng) for _ in range(groups)]
     fixed = [] if args.procedural >= 1.0 and groups else list(args.tracks)
     return BatchVecEnv(
         [*fixed, *generated],
