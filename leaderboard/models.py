@@ -155,6 +155,13 @@ class SubmissionVersion(Base):
     # The car class it races in (the manifest's ``car``; every version of a submission has
     # the same one): its ladder.
     car: Mapped[str] = mapped_column(String(16), default=DEFAULT_CAR, server_default=DEFAULT_CAR)
+    # Its robustness run (:mod:`leaderboard.robustness`): the score, m/s (worst-10 % mean of
+    # the effective speed over the perturbation grid), and the run (a race of kind
+    # ``robustness`` whose result holds every grid point).
+    robust_score: Mapped[float | None] = mapped_column(Float)
+    robust_race_id: Mapped[int | None] = mapped_column(
+        ForeignKey("races.id", ondelete="SET NULL", name="fk_versions_robust_race")
+    )
 
     submission: Mapped[Submission] = relationship(
         back_populates="versions", foreign_keys=[submission_id]
@@ -164,8 +171,11 @@ class SubmissionVersion(Base):
 class Race(Base):
     """A race: scheduled (``queued``), being run (``running``), ``finished`` or ``failed``.
 
-    ``kind`` is ``validation`` (a new version's first race, unrated) or ``ranked``.
-    ``result`` is the race result JSON (``RaceResult.to_dict()``); replays are files.
+    ``kind`` is ``validation`` (a new version's first race, unrated), ``ranked``,
+    ``robustness`` (not a race: one version's solo laps over the perturbation grid, queued
+    and run like a race; :mod:`leaderboard.robustness`) or ``tournament`` (a heat of a
+    tournament, unrated). ``result`` is the race result JSON (``RaceResult.to_dict()``, or a
+    robustness run's document); replays are files.
     """
 
     __tablename__ = "races"

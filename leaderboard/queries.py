@@ -94,6 +94,9 @@ class LeaderboardRow(_Model):
     races: int
     wins: int
     win_rate: float
+    # The racing version's robustness score, m/s (leaderboard.robustness); None until run.
+    robust_score: float | None = None
+    robust_race_id: int | None = None
 
 
 class VersionInfo(_Model):
@@ -195,14 +198,49 @@ class SubmissionSummary(_Model):
     created_at: datetime
 
 
+class RobustPoint(_Model):
+    """One lap of a robustness run: its perturbation and how the car did (m, s, m/s)."""
+
+    perturbation: dict[str, float]  # friction, motor, steer_offset (rad), latency (steps)
+    score: float  # effective speed, m/s
+    finished: bool
+    distance: float
+    time: float
+    dnf_reason: str | None
+
+
+class RobustnessRun(UtcModel):
+    """A version's robustness run (:mod:`leaderboard.robustness`): ``score`` is the grid's
+    worst-10 % mean effective speed, m/s; ``points`` the nominal lap first, then the grid."""
+
+    race_id: int
+    version: int
+    status: str  # queued | running | finished | failed
+    track: str
+    car: str
+    laps: int
+    seed: int
+    score: float | None = None
+    nominal: float | None = None
+    mean: float | None = None
+    worst: float | None = None
+    worst_over_nominal: float | None = None
+    dnf_reason: str | None = None  # the policy's failure that ended the run, if any
+    points: list[RobustPoint] = []
+    error: str | None = None  # why the run failed (status failed)
+    finished_at: datetime | None = None
+
+
 class SubmissionDetail(SubmissionSummary):
-    """A submission with its versions, recent races and rating history."""
+    """A submission with its versions, recent races, rating history and the robustness run
+    of the version that races."""
 
     description: str
     rank: int | None
     versions: list[VersionInfo]
     recent_races: list[RaceSummary]
     rating_history: list[RatingPoint]
+    robustness: RobustnessRun | None = None
 
 
 class RecordRow(_Model):
@@ -273,6 +311,10 @@ def check_car(car: str | None) -> str | None:
     return car
 
 
+ORDERS = ("rating", "robust")
+"""Orderings of the leaderboard: by ordinal (the ladder), or by robustness score."""
+
+
 def _leaderboard_fingerprint(session: Session) -> tuple[Any, ...]:
     """What changes whenever the leaderboard can: every writer bumps ``updated_at``; the
     active count also catches a status changed by hand (both are index look-ups)."""
@@ -289,26 +331,39 @@ def leaderboard(
     provisional_races: int = PROVISIONAL_RACES,
     max_age_s: float = SNAPSHOT_MAX_AGE_S,
     car: str | None = None,
+    order: str = "rating",
 ) -> Page[LeaderboardRow]:
     """Active submissions by ordinal (μ − 3σ), best first; provisional ones after the rest.
 
     A submission with fewer than ``provisional_races`` rated races is *provisional*: its
     ordinal says little yet (a new one starts at 0, above many established negative ones), so
     it is listed after every established submission, marked ``provisional``. ``car`` keeps
-    one car class's ladder (None: every class, each row saying its car). Snapshots are
-    cached per page (:mod:`leaderboard.cache`) until a submission changes.
+    one car class's ladder (None: every class, each row saying its car). ``order="robust"``
+    orders by the racing version's robustness score instead (best first; submissions not
+    scored yet last, by ordinal). Snapshots are cached per page (:mod:`leaderboard.cache`)
+    until a submission changes.
+
+    Raises:
+        NotFound: ``order`` is not one of :data:`ORDERS`.
     """
+    if order not in ORDERS:
+        raise NotFound(f"no leaderboard order {order!r} (one of {', '.join(ORDERS)})")
     page, per_page = _clamp(page, per_page)
     return cache_for(session).get(
-        ("leaderboard", page, per_page, provisional_races, car),
+        ("leaderboard", page, per_page, provisional_races, car, order),
         _leaderboard_fingerprint(session),
-        lambda: _leaderboard_page(session, page, per_page, provisional_races, car),
+        lambda: _leaderboard_page(session, page, per_page, provisional_races, car, order),
         max_age_s,
     )
 
 
 def _leaderboard_page(
-    session: Session, page: int, per_page: int, provisional_races: int, car: str | None
+    session: Session,
+    page: int,
+    per_page: int,
+    provisional_races: int,
+    car: str | None,
+    order: str,
 ) -> Page[LeaderboardRow]:
     where: list[ColumnElement[bool]] = [Submission.status == "active"]
     if car is not None:
@@ -319,12 +374,20 @@ def _leaderboard_page(
         .outerjoin(SubmissionVersion, SubmissionVersion.id == Submission.active_version_id)
         .where(*where),
     )
+    ranking: tuple[Any, ...] = (
+        _provisional(provisional_races),
+        Submission.ordinal.desc(),
+        Submission.id,
+    )
+    if order == "robust":
+        score = SubmissionVersion.robust_score
+        ranking = (score.is_(None), score.desc(), Submission.ordinal.desc(), Submission.id)
     rows = session.execute(
-        select(Submission, User.name, SubmissionVersion.version, SubmissionVersion.car)
+        select(Submission, User.name, SubmissionVersion)
         .join(User, User.id == Submission.user_id)
         .outerjoin(SubmissionVersion, SubmissionVersion.id == Submission.active_version_id)
         .where(*where)
-        .order_by(_provisional(provisional_races), Submission.ordinal.desc(), Submission.id)
+        .order_by(*ranking)
         .offset((page - 1) * per_page)
         .limit(per_page)
     ).all()
@@ -335,16 +398,18 @@ def _leaderboard_page(
             submission_id=sub.id,
             name=sub.name,
             author=author,
-            version=version,
-            car=version_car or DEFAULT_CAR,
+            version=ver.version if ver else None,
+            car=ver.car if ver else DEFAULT_CAR,
             ordinal=sub.ordinal,
             mu=sub.mu,
             sigma=sub.sigma,
             races=sub.races,
             wins=sub.wins,
             win_rate=_win_rate(sub.wins, sub.races),
+            robust_score=ver.robust_score if ver else None,
+            robust_race_id=ver.robust_race_id if ver else None,
         )
-        for i, (sub, author, version, version_car) in enumerate(rows)
+        for i, (sub, author, ver) in enumerate(rows)
     ]
     return Page(items=items, total=total, page=page, per_page=per_page)
 
@@ -472,6 +537,44 @@ def submission_detail(session: Session, submission_id: int, *, races: int = 20) 
         if races
         else [],
         rating_history=rating_history(session, submission_id),
+        robustness=robustness_run(session, sub.active_version_id)
+        if sub.active_version_id
+        else None,
+    )
+
+
+def robustness_run(session: Session, version_id: int) -> RobustnessRun | None:
+    """The latest robustness run of a version, with every grid point (None if never queued)."""
+    row = session.execute(
+        select(Race, SubmissionVersion.version)
+        .join(RaceEntry, RaceEntry.race_id == Race.id)
+        .join(SubmissionVersion, SubmissionVersion.id == RaceEntry.version_id)
+        .where(RaceEntry.version_id == version_id, Race.kind == "robustness")
+        .order_by(Race.id.desc())
+        .limit(1)
+    ).first()
+    if row is None:
+        return None
+    race, version = row
+    doc = race.result or {}
+    car = (doc.get("cars") or [{}])[0]
+    return RobustnessRun(
+        race_id=race.id,
+        version=version,
+        status=race.status,
+        track=race.track,
+        car=race.car,
+        laps=race.laps,
+        seed=race.seed,
+        score=doc.get("score"),
+        nominal=doc.get("nominal"),
+        mean=doc.get("mean"),
+        worst=doc.get("worst"),
+        worst_over_nominal=doc.get("worst_over_nominal"),
+        dnf_reason=car.get("dnf_reason"),
+        points=[RobustPoint.model_validate(p) for p in doc.get("points", [])],
+        error=race.error,
+        finished_at=race.finished_at,
     )
 
 
@@ -522,7 +625,8 @@ def races(
 ) -> Page[RaceSummary]:
     """Races, newest first; optionally of one track, status, kind or submission."""
     page, per_page = _clamp(page, per_page)
-    where: list[ColumnElement[bool]] = []
+    # Robustness runs are queued as races but are not races: listed only when asked for.
+    where: list[ColumnElement[bool]] = [] if kind else [Race.kind != "robustness"]
     if submission_id is not None:
         where.append(
             Race.id.in_(select(RaceEntry.race_id).where(RaceEntry.submission_id == submission_id))
@@ -557,15 +661,13 @@ def races(
 def submission_races(
     session: Session, submission_id: int, *, page: int = 1, per_page: int = 20
 ) -> Page[RaceSummary]:
-    """The races a submission took part in, newest first."""
+    """The races a submission took part in, newest first (robustness runs left out)."""
     page, per_page = _clamp(page, per_page)
-    total = _count(
-        session,
-        select(func.count(RaceEntry.id)).where(RaceEntry.submission_id == submission_id),
-    )
+    mine = (RaceEntry.submission_id == submission_id) & ~RaceEntry.race_id.in_(_robustness_ids())
+    total = _count(session, select(func.count(RaceEntry.id)).where(mine))
     ids = session.scalars(
         select(RaceEntry.race_id)
-        .where(RaceEntry.submission_id == submission_id)
+        .where(mine)
         .order_by(RaceEntry.race_id.desc())
         .offset((page - 1) * per_page)
         .limit(per_page)
@@ -577,6 +679,11 @@ def submission_races(
         .options(selectinload(Race.entries))
     ).all()
     return Page(items=_race_summaries(rows), total=total, page=page, per_page=per_page)
+
+
+def _robustness_ids() -> Select[Any]:
+    """The ids of robustness runs (races of kind ``robustness``)."""
+    return select(Race.id).where(Race.kind == "robustness")
 
 
 def race_detail(session: Session, race_id: int) -> RaceDetail:
@@ -733,9 +840,9 @@ def submission_entries(
     session: Session, submission_id: int, *, page: int = 1, per_page: int = 20
 ) -> Page[MyRace]:
     """A submission's races, newest first, each with its own position, penalties, best lap
-    and rating change."""
+    and rating change (robustness runs left out: the page shows them apart)."""
     page, per_page = _clamp(page, per_page)
-    where = RaceEntry.submission_id == submission_id
+    where = (RaceEntry.submission_id == submission_id) & ~RaceEntry.race_id.in_(_robustness_ids())
     total = _count(session, select(func.count(RaceEntry.id)).where(where))
     n_cars = (
         select(func.count(RaceEntry.id))

@@ -1,7 +1,9 @@
 """Storing a finished race: the result JSON, each car's outcome, then its consequences.
 
 A ranked race updates ratings (:mod:`leaderboard.ratings`) and track records; a validation
-race decides whether the new version may enter ranked races. Everything happens in the
+race decides whether the new version may enter ranked races; a robustness run records its
+version's score (:mod:`leaderboard.robustness`); a tournament heat changes nothing else
+(tournaments are unrated). Everything happens in the
 caller's transaction: :func:`leaderboard.queue.complete` calls :func:`store_result` right after
 it has checked the worker still holds the job's lease, and commits once.
 """
@@ -80,6 +82,12 @@ def store_result(
     race.sandbox = sandbox
     race.duration_s = duration_s
     race.error = None
+    if race.kind == "robustness":  # solo laps over a grid: no placings, no rating
+        # Imported here: leaderboard.robustness schedules through the queue, which imports us.
+        from leaderboard.robustness import store_robustness  # noqa: PLC0415
+
+        store_robustness(session, race)
+        return
     by_car = {e.car: e for e in race.entries}
     for car in public.get("cars", []):
         match = _CAR.match(str(car.get("agent", "")))
@@ -88,9 +96,10 @@ def store_result(
             _fill_entry(entry, car)
     if race.kind == "validation":
         _judge_validation(session, race)
-    else:
+    elif race.kind == "ranked":
         rate_race(session, race)
         _update_records(session, race)
+    # Tournament heats are unrated: leaderboard.tournaments reads their entries.
 
 
 def _fill_entry(entry: RaceEntry, car: Mapping[str, Any]) -> None:

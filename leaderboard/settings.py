@@ -57,6 +57,10 @@ class Settings(BaseSettings):
     )
     min_cars: int = Field(default=2, ge=2, le=8, description="fewest cars in a ranked race")
     max_cars: int = Field(default=4, ge=2, le=8, description="most cars in a ranked race")
+    robustness: bool = Field(
+        default=True,
+        description="workers queue a robustness run (leaderboard.robustness) per ranked version",
+    )
     page_size: int = Field(default=50, ge=1, le=500, description="default rows per page")
     provisional_races: int = Field(
         default=5,

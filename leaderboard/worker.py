@@ -1,8 +1,10 @@
 """Evaluation worker: claims races from the queue, runs them, stores results exactly once.
 
 ``slipstream worker --db URL`` runs :class:`Worker`: each cycle it fails races whose leases
-ran out too often, tops the queue up with ranked races (:mod:`leaderboard.matchmaking`),
-claims up to ``workers`` races with a lease (:mod:`leaderboard.queue`), runs them through
+ran out too often, queues the robustness runs of newly ranked versions
+(:mod:`leaderboard.robustness`; they run like races, as :func:`race_job` builds them), tops
+the queue up with ranked races (:mod:`leaderboard.matchmaking`), claims up to ``workers``
+races with a lease (:mod:`leaderboard.queue`), runs them through
 :func:`submissions.jobs.run_race_job` on a local process pool or a Ray cluster
 (:func:`submissions.executors.make_executor`), and stores each result with its rating update
 in one transaction. A thread renews the leases while the races run; a worker that dies stops
@@ -43,7 +45,7 @@ from typing import TYPE_CHECKING, Any
 from sqlalchemy import and_, select, update
 from sqlalchemy.orm import Session, selectinload
 
-from leaderboard import matchmaking, queue
+from leaderboard import matchmaking, queue, robustness
 from leaderboard.db import make_engine, make_sessionmaker
 from leaderboard.migrations import upgrade
 from leaderboard.models import Job, Race, utcnow
@@ -108,9 +110,16 @@ class WorkerStats:
 
 
 def race_job(race: Race, settings: Settings) -> RaceJob:
-    """The evaluation job of a queued race (car ``i`` is entry ``car == i``)."""
+    """The evaluation job of a queued race (car ``i`` is entry ``car == i``); for a race of
+    kind ``robustness``, the robustness run of its one entry over
+    :func:`submissions.robustness.leaderboard_grid` (no replay)."""
     from submissions.jobs import Entrant, RaceJob  # noqa: PLC0415 - light, but not web-side
 
+    robustness = None
+    if race.kind == "robustness":
+        from submissions.robustness import leaderboard_grid  # noqa: PLC0415 - numpy
+
+        robustness = tuple(leaderboard_grid())
     return RaceJob(
         job_id=str(race.id),
         entrants=tuple(
@@ -127,6 +136,8 @@ def race_job(race: Race, settings: Settings) -> RaceJob:
         seed=race.seed,
         ranked=race.penalties,
         car=race.car,
+        record_viser=robustness is None,
+        robustness=robustness,
     )
 
 
@@ -159,7 +170,8 @@ class Worker:
             tests inject a fake one. A runner with a ``cancel(job_id, reason)`` method (the
             executors have one) has stalled or stopped jobs killed; others are only no
             longer renewed.
-        schedule: top the queue up with ranked races when it runs low.
+        schedule: top the queue up with ranked races when it runs low, and (with
+            ``settings.robustness``) queue the robustness runs of newly ranked versions.
         owner: the name leases are taken under (default: host, pid and a random suffix).
         allow_weak_sandbox: accept the seccomp fallback where bubblewrap cannot run.
         stall_s: renew a lease only while its race's step count moved in the last
@@ -223,10 +235,13 @@ class Worker:
     # ---- one cycle -------------------------------------------------------------------------
 
     def prepare(self) -> None:
-        """Fail races that lost their lease too often; queue ranked races if running low."""
+        """Fail races that lost their lease too often; queue the robustness runs of newly
+        ranked versions (:mod:`leaderboard.robustness`) and ranked races if running low."""
         with self.sessions() as session:
             queue.expire(session)
             if self.schedule:
+                if self.settings.robustness:
+                    robustness.schedule_robustness(session, self.settings)
                 matchmaking.top_up(session, self.settings, 2 * self.workers, self.rng)
                 session.commit()
 

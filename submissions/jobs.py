@@ -113,6 +113,9 @@ class RaceJob:
             one the bundles' manifests declare (they must agree), else ``"f1tenth"``. A
             bundle that declares another car than the job's is refused.
         solo: a time trial: one entrant alone is allowed (races take 2 to 8).
+        robustness: not a race but a robustness run (:mod:`submissions.robustness`): the one
+            entrant drives solo laps, one run per perturbation (names to values, as
+            ``reset(options={"perturbation": ...})`` takes), in the same sandbox.
     """
 
     job_id: str
@@ -127,11 +130,14 @@ class RaceJob:
     wall_clock_s: float | None = None
     car: str | None = None
     solo: bool = False
+    robustness: tuple[dict[str, float], ...] | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.job_id, str) or not JOB_ID.fullmatch(self.job_id):
             raise SubmissionError(f"job id {self.job_id!r} must match {JOB_ID.pattern}")
-        fewest = 1 if self.solo else MIN_CARS
+        if self.robustness is not None and (len(self.entrants) != 1 or not self.robustness):
+            raise SubmissionError("a robustness job takes one entrant and at least one point")
+        fewest = 1 if self.solo or self.robustness is not None else MIN_CARS
         if not fewest <= len(self.entrants) <= MAX_CARS:
             raise SubmissionError(
                 f"a race job takes {fewest} to {MAX_CARS} entrants, not {len(self.entrants)}"
@@ -187,6 +193,11 @@ class RaceJob:
                 wall_clock_s=None if wall is None else float(wall),
                 car=None if doc.get("car") is None else str(doc["car"]),
                 solo=bool(doc.get("solo", False)),
+                robustness=None
+                if doc.get("robustness") is None
+                else tuple(
+                    {str(k): float(v) for k, v in point.items()} for point in doc["robustness"]
+                ),
             )
         except (KeyError, TypeError, ValueError) as err:
             raise SubmissionError(f"malformed race job: {type(err).__name__}: {err}") from None
@@ -258,6 +269,39 @@ class JobResult:
         )
 
 
+def open_entrant(
+    entrant: Entrant,
+    job: RaceJob,
+    env: EnvSpec,
+    tmp: Path,
+    bundles: dict[str, Bundle],
+    pool: SandboxPool | None,
+) -> tuple[Any, Bundle | None]:
+    """The policy of one entrant: a baseline in-process, or a bundle (extracted under
+    ``tmp`` once per source, cached in ``bundles``) in its sandbox (from ``pool`` if given).
+
+    Returns:
+        The policy (named ``entrant.name``) and its bundle (None for a baseline).
+
+    Raises:
+        BundleError: the bundle is invalid.
+    """
+    if entrant.is_baseline:
+        from agents.baselines import make_baseline  # noqa: PLC0415 - heavy: the simulator
+        from arena.observations import ObservationLayout  # noqa: PLC0415
+
+        policy: Any = make_baseline(
+            entrant.source, ObservationLayout(env.lidar_rays, env.k_opponents)
+        )
+        policy.name = entrant.name
+        return policy, None
+    if entrant.source not in bundles:
+        dest = tmp / f"bundle_{len(bundles)}"
+        bundles[entrant.source] = open_bundle(Path(entrant.source), dest, env=env)
+    bundle = bundles[entrant.source]
+    return _sandboxed(bundle, job, env, entrant.name, pool), bundle
+
+
 def _sandboxed(
     bundle: Bundle, job: RaceJob, env: EnvSpec, name: str, pool: SandboxPool | None
 ) -> SandboxedPolicy:
@@ -272,7 +316,7 @@ def _sandboxed(
     return policy
 
 
-def _cap_details(result: dict[str, Any], events: list[dict[str, Any]]) -> None:
+def cap_details(result: dict[str, Any], events: list[dict[str, Any]]) -> None:
     """Cap every ``dnf`` event's detail; copy each car's first one into ``result``."""
     from submissions.protocol import cap_text  # noqa: PLC0415 - light, but keep imports lazy
 
@@ -285,7 +329,7 @@ def _cap_details(result: dict[str, Any], events: list[dict[str, Any]]) -> None:
         car["dnf_detail"] = details.get(car.get("agent")) if car.get("status") == "dnf" else None
 
 
-def _weakest_mode(modes: list[str]) -> str:
+def weakest_mode(modes: list[str]) -> str:
     """What the result records: ``"none"``, ``"bwrap"`` or ``"seccomp-weak"`` (any fallback)."""
     from submissions.sandbox import mode_label  # noqa: PLC0415 - light, but keep imports lazy
 
@@ -319,7 +363,8 @@ def progress_path(job: RaceJob) -> Path:
     return Path(job.out_dir) / f".{job.job_id}.progress"
 
 
-def _write_progress(path: Path, step: int) -> None:
+def write_progress(path: Path, step: int) -> None:
+    """Replace ``path``'s text with ``step`` (atomically; a failure is only logged)."""
     tmp = path.with_name(path.name + ".tmp")
     try:
         tmp.write_text(str(step), encoding="utf-8")
@@ -367,15 +412,16 @@ def _run_job(
 ) -> JobResult:
     """:func:`run_race_job` with bundles extracted under ``tmp`` (cached by source in
     ``bundles``) and sandboxes from ``pool`` (None: fresh ones, killed after the race)."""
-    from agents.baselines import make_baseline  # noqa: PLC0415 - heavy: the simulator
-    from arena.observations import ObservationLayout  # noqa: PLC0415
-    from arena.race import run_race  # noqa: PLC0415
+    if job.robustness is not None:
+        from submissions.robustness import run_robustness_job  # noqa: PLC0415 - the simulator
+
+        return run_robustness_job(job, tmp, bundles, pool)
+    from arena.race import run_race  # noqa: PLC0415 - heavy: the simulator
     from submissions.sandbox import mode_label  # noqa: PLC0415
 
     start = time.perf_counter()
     started = time.monotonic()
     env = EnvSpec.current()
-    layout = ObservationLayout(env.lidar_rays, env.k_opponents)
     out_dir = Path(job.out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     policies: list[Policy] = []
@@ -394,21 +440,15 @@ def _run_job(
         now = time.monotonic()
         if now - last_write[0] >= PROGRESS_EVERY_S:
             last_write[0] = now
-            _write_progress(progress_file, step)
+            write_progress(progress_file, step)
 
     logs: dict[str, dict[str, str]] = {}
     declared: list[str] = []  # the bundles' cars
     try:
         for entrant in job.entrants:
-            if entrant.is_baseline:
-                policy: Any = make_baseline(entrant.source, layout)
-                policy.name = entrant.name
-            else:
-                if entrant.source not in bundles:
-                    dest = tmp / f"bundle_{len(bundles)}"
-                    bundles[entrant.source] = open_bundle(Path(entrant.source), dest, env=env)
-                declared.append(bundles[entrant.source].manifest.car)
-                policy = _sandboxed(bundles[entrant.source], job, env, entrant.name, pool)
+            policy, bundle = open_entrant(entrant, job, env, tmp, bundles, pool)
+            if bundle is not None:
+                declared.append(bundle.manifest.car)
                 if job.wall_clock_s is not None:
                     policy.race_deadline = started + job.wall_clock_s
                 agents[id(policy)] = f"car_{len(policies)}"
@@ -441,7 +481,7 @@ def _run_job(
     assert replay is not None  # record=True
     doc = result.to_dict()
     doc["car"] = car
-    _cap_details(doc, replay.events)
+    cap_details(doc, replay.events)
     replay.save(job.replay_path)
     viser_path = None
     if job.record_viser:
@@ -453,7 +493,7 @@ def _run_job(
         result=doc,
         replay_path=str(job.replay_path),
         viser_path=viser_path,
-        sandbox=_weakest_mode([p.mode for p in sandboxed]),
+        sandbox=weakest_mode([p.mode for p in sandboxed]),
         duration_s=round(time.perf_counter() - start, 3),
         entrants=[asdict(e) for e in job.entrants],
         logs=logs,

@@ -3,13 +3,15 @@
 ============================  ============================================  =====================
 page                          shows                                         JSON twin (``/api``)
 ============================  ============================================  =====================
-``/``                         leaderboard: rank, name, author, car,         ``/leaderboard``
-                              ordinal, μ, σ, races, win rate (paginated);
-                              ``?q=`` search, ``?car=`` one car class
+``/``                         leaderboard: rank, name, author, ordinal, μ,  ``/leaderboard``
+                              σ, races, win rate, car, robustness score
+                              (paginated); ``?q=`` search, ``?car=`` one
+                              car class, ``?order=robust`` by robustness
 ``/submissions/{id}``         versions with validation races and reasons,   ``/submissions/{id}``
                               every race (position, Δμ, Δσ, penalties,
                               best lap), best laps by track, head to head,
-                              rating history chart
+                              rating history chart, the robustness run's
+                              grid (every point)
 ``/races``                    all races, newest first (paginated); filters  ``/races``
                               ``track``, ``kind``, ``submission``
 ``/races/{id}``               results (race time + penalties = total), what ``/races/{id}``
@@ -170,9 +172,10 @@ def leaderboard_page(
     viewer: ViewerDep,
     q: Annotated[str, Query(max_length=64, description="name or author contains")] = "",
     car: Annotated[str, Query(max_length=16, description="one car class")] = "",
+    order: Annotated[Literal["rating", "robust"], Query()] = "rating",
 ) -> HTMLResponse:
     """The leaderboard: active submissions by ordinal, best first; ``q`` searches it, ``car``
-    keeps one car class's ladder."""
+    keeps one car class's ladder, ``order=robust`` ranks by robustness score."""
     q = q.strip()
     car_class = queries.check_car(car)
     page = queries.leaderboard(
@@ -182,18 +185,23 @@ def leaderboard_page(
         provisional_races=settings.provisional_races,
         max_age_s=settings.cache_max_age_s,
         car=car_class,
+        order=order,
     )
     rows = page.items
     if q:  # the snapshot is cached; filtering it costs nothing
         needle = q.lower()
         rows = [r for r in rows if needle in r.name.lower() or needle in r.author.lower()]
-    query = urlencode({"car": car_class} if car_class else {})
+    params = {"car": car_class or "", "order": "" if order == "rating" else order}
+    query = urlencode({k: v for k, v in params.items() if v})
     context = {
         "nav": "leaderboard",
         "rows": rows,
         "q": q,
         "car": car_class or "",
         "cars": queries.car_classes(),
+        "order": order,
+        "car_query": urlencode({"car": car_class}) if car_class else "",
+        "order_query": f"order={order}" if order != "rating" else "",
         "api_url": "/api/leaderboard" + (f"?{query}" if query else ""),
     }
     base = "/" + (f"?{query}" if query else "")
@@ -212,7 +220,7 @@ def races_page(
     pages: PageDep,
     viewer: ViewerDep,
     track: Annotated[str, Query(max_length=128)] = "",
-    kind: Annotated[Literal["", "validation", "ranked"], Query()] = "",
+    kind: Annotated[Literal["", "validation", "ranked", "tournament", "robustness"], Query()] = "",
     submission: Annotated[int | None, Query(ge=1, le=2**31 - 1)] = None,
 ) -> HTMLResponse:
     """All races, newest first; filtered by track, kind and submission."""

@@ -86,7 +86,10 @@ class FakeRunner:
             yield self.result(job, real_viser=int(job.job_id) in self.viser)
 
     def result(self, job: RaceJob, *, real_viser: bool) -> JobResult:
-        """A finished race: the better baseline wins; ``random`` never finishes."""
+        """A finished race: the better baseline wins; ``random`` never finishes. A robustness
+        job gets :func:`fake_robustness`."""
+        if job.robustness is not None:
+            return fake_robustness(job)
         out = Path(job.out_dir)
         order = sorted(
             range(len(job.entrants)),
@@ -149,6 +152,49 @@ class FakeRunner:
         )
 
 
+def fake_robustness(job: RaceJob) -> JobResult:
+    """A robustness run's result, shaped like :func:`submissions.robustness.run_robustness_job`
+    writes it: each baseline slows down under perturbation by its own share (``random``
+    crawls), so the robust order differs from the rating order."""
+    from agents.robustness import NOMINAL, summarise
+
+    (entrant,) = job.entrants
+    base = _baseline_of(entrant.name)
+    nominal = SPEED.get(base, 3.0)
+    loss = {"pursuit": 0.45, "gap": 0.1, "random": 0.5}.get(base, 0.3)  # worst-case share lost
+    points = [dict(NOMINAL), *(job.robustness or ())]
+    scores = [nominal] + [
+        nominal * (1.0 - loss * (k + 1) / len(points)) for k in range(len(points) - 1)
+    ]
+    summary = summarise(scores[1:], nominal)
+    doc = {
+        "kind": "robustness",
+        "track": job.track,
+        "car": job.car or "f1tenth",
+        "laps": job.laps,
+        "seed": job.seed,
+        "env_version": "test",
+        "score": summary["worst10_mean"],
+        "nominal": nominal,
+        **summary,
+        "points": [
+            {
+                "perturbation": p,
+                "score": s,
+                "finished": True,
+                "distance": 50.0,
+                "time": 50.0 / s,
+                "dnf_reason": None,
+            }
+            for p, s in zip(points, scores, strict=True)
+        ],
+        "cars": [
+            {"agent": "car_0", "name": entrant.name, "status": "finished", "dnf_reason": None}
+        ],
+    }
+    return JobResult(job.job_id, doc, "", None, "none", 0.5)
+
+
 @dataclass
 class Site:
     """What :func:`seed_site` made: the settings, the house user's token and the fake runner."""
@@ -158,7 +204,14 @@ class Site:
     runner: FakeRunner
 
 
-def seed_site(data_dir: Path, *, ranked: int = 6, viser: Sequence[int] = (), seed: int = 0) -> Site:
+def seed_site(
+    data_dir: Path,
+    *,
+    ranked: int = 6,
+    viser: Sequence[int] = (),
+    seed: int = 0,
+    robustness: bool = False,
+) -> Site:
     """A leaderboard with the three baselines, their validation races and ``ranked`` races.
 
     Args:
@@ -167,8 +220,12 @@ def seed_site(data_dir: Path, *, ranked: int = 6, viser: Sequence[int] = (), see
         viser: the race ids that get a real ``.viser`` replay (races 1-3 validate the
             baselines; ranked races follow).
         seed: seed of the matchmaker's draws.
+        robustness: also run each baseline's robustness run (:func:`fake_robustness`; they
+            run before the ranked races and take race ids).
     """
-    settings = Settings(data_dir=data_dir, tracks=["oval", "bean"], max_cars=3)
+    settings = Settings(
+        data_dir=data_dir, tracks=["oval", "bean"], max_cars=3, robustness=robustness
+    )
     settings.ensure_dirs()
     engine = make_engine(settings.db_url)
     try:
@@ -186,7 +243,7 @@ def seed_site(data_dir: Path, *, ranked: int = 6, viser: Sequence[int] = (), see
     worker = Worker(settings, runner=runner, schedule=True, workers=1, owner="test")
     worker.rng = random.Random(seed)  # the same matchmaking draws every run
     try:
-        worker.run(max_races=3 + ranked, poll_s=0.0)
+        worker.run(max_races=3 + ranked + 3 * robustness, poll_s=0.0)
     finally:
         worker.close()
     return Site(settings=settings, token=token, runner=runner)

@@ -88,7 +88,8 @@ def test_worker_runs_real_races_end_to_end(
     client: TestClient, db: Session, settings: Settings, alice: Account, bundle_zip
 ) -> None:
     """Upload → sandboxed validation race → ranked races → ratings, replays on disk."""
-    settings = settings.model_copy(update={"race_laps": 1, "tracks": ["oval"]})
+    # Races only: robustness runs (tests/leaderboard/test_robustness.py) would go first.
+    settings = settings.model_copy(update={"race_laps": 1, "tracks": ["oval"], "robustness": False})
     factories.seed(db, settings, n_submissions=2, n_races=0)  # pursuit-0, gap-1 (validated)
     with bundle_zip("uploaded").open("rb") as f:
         r = client.post("/api/submissions", headers=alice.headers, files={"file": ("u.zip", f)})

@@ -21,7 +21,10 @@ def list_races(
     status: Annotated[
         Literal["queued", "running", "finished", "failed"] | None, Query(description="race status")
     ] = None,
-    kind: Annotated[Literal["validation", "ranked"] | None, Query()] = None,
+    kind: Annotated[
+        Literal["validation", "ranked", "tournament", "robustness"] | None,
+        Query(description="race kind (robustness runs are listed only when asked for)"),
+    ] = None,
     submission: Annotated[
         int | None, Query(ge=1, le=2**31 - 1, description="only races of this submission")
     ] = None,
