@@ -5,7 +5,10 @@ One batch of identical race jobs (``--races`` races of ``--cars`` cars on ``--tr
 (:func:`submissions.jobs.run_race_job`):
 
 1. by the local process pool (:class:`submissions.executors.LocalExecutor`, ``--workers``);
-2. by Ray (:class:`submissions.executors.RayExecutor`) on a local Ray instance with
+2. as one batch in one process (:func:`submissions.jobs.run_race_jobs`): each car's sandbox
+   is started once and kept for all the races (:class:`submissions.remote.SandboxPool`), the
+   races run one after another — what the executors would gain by batching;
+3. by Ray (:class:`submissions.executors.RayExecutor`) on a local Ray instance with
    ``--workers`` CPUs (skipped with ``--no-ray``; ``--ray-address`` for a cluster).
 
 Each car is our shipped PPO checkpoint wrapped in a bundle, so every car runs in its own
@@ -13,6 +16,9 @@ sandbox (``--baselines`` races in-process baselines instead, to see the sandbox'
 Figures: wall time of the batch, races per minute, and the mean job duration (seconds inside
 the job: sandbox start-up, the race, the replay files). Ray's start-up (``ray.init``) is
 timed separately and not counted in its batch.
+
+The batch runs in this (the runner's) process, so ``batch`` shows no job-process start-up
+either; the local pool starts one spawned process per job.
 
 Usage::
 
@@ -35,7 +41,7 @@ from typing import Any
 from arena.version import ENV_VERSION
 from submissions.bundle import Manifest, make_bundle
 from submissions.executors import LocalExecutor, RayExecutor
-from submissions.jobs import Entrant, JobResult, RaceJob
+from submissions.jobs import Entrant, JobResult, RaceJob, run_race_jobs
 
 CHECKPOINT = Path(__file__).resolve().parents[1] / "agents" / "data" / "ppo_racer.zip"
 
@@ -56,6 +62,13 @@ def make_jobs(args: argparse.Namespace, bundle: Path, out: Path) -> list[RaceJob
         )
         for k in range(args.races)
     ]
+
+
+class _OneBatch:
+    """All the jobs in this process, sandboxes kept between races (run_race_jobs)."""
+
+    def run(self, jobs: list[RaceJob]) -> list[JobResult]:
+        return run_race_jobs(jobs)
 
 
 def time_batch(executor: Any, jobs: list[RaceJob]) -> dict[str, Any]:
@@ -102,6 +115,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         }
         jobs = make_jobs(args, bundle, Path(tmp) / "local")
         report["local"] = time_batch(LocalExecutor(workers=args.workers), jobs)
+        report["batch"] = time_batch(_OneBatch(), make_jobs(args, bundle, Path(tmp) / "batch"))
         if not args.no_ray:
             ray_exec = RayExecutor(args.ray_address or "local", num_cpus=args.workers)
             start = time.perf_counter()
@@ -140,7 +154,7 @@ def main(argv: list[str] | None = None) -> int:
         f"{report['machine']['cpus']} CPUs"
     )
     print(f"{'executor':10s} {'wall s':>8s} {'races/min':>10s} {'mean job s':>11s}  sandbox")
-    for key in ("local", "ray"):
+    for key in ("local", "batch", "ray"):
         if key in report:
             r = report[key]
             print(
