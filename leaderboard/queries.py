@@ -441,9 +441,12 @@ def submissions(
     """All submissions (any status), newest first; optionally one author's."""
     page, per_page = _clamp(page, per_page)
     where = [User.name == author] if author else []
-    total = _count(
-        session,
-        select(func.count(Submission.id)).join(User, User.id == Submission.user_id).where(*where),
+    count = select(func.count(Submission.id)).join(User, User.id == Submission.user_id)
+    total = cache_for(session).get(  # only a new submission changes it: until the newest id moves
+        ("submission-count", author),
+        session.scalar(select(func.max(Submission.id))),
+        lambda: _count(session, count.where(*where)),
+        SNAPSHOT_MAX_AGE_S,
     )
     latest = (
         select(func.max(SubmissionVersion.version))
@@ -486,30 +489,49 @@ def submission_rank(
     car = session.scalar(
         select(SubmissionVersion.car).where(SubmissionVersion.id == sub.active_version_id)
     )
-    mine = 1 if sub.races < provisional_races else 0
-    group = _provisional(provisional_races)
-    better = _count(
-        session,
-        select(func.count(Submission.id))
-        .join(SubmissionVersion, SubmissionVersion.id == Submission.active_version_id)
-        .where(
-            Submission.status == "active",
-            SubmissionVersion.car == (car or DEFAULT_CAR),
-            (group < mine)
-            | (
-                (group == mine)
-                & (
-                    (Submission.ordinal > sub.ordinal)
-                    | ((Submission.ordinal == sub.ordinal) & (Submission.id < sub.id))
-                )
-            ),
-        ),
+    ranks = ladder_ranks(session, car or DEFAULT_CAR, provisional_races=provisional_races)
+    return ranks.get(sub.id)
+
+
+def ladder_ranks(
+    session: Session,
+    car: str,
+    *,
+    provisional_races: int = PROVISIONAL_RACES,
+    max_age_s: float = SNAPSHOT_MAX_AGE_S,
+) -> dict[int, int]:
+    """Submission id → rank in the ``car`` ladder, for every active submission of that class.
+
+    One ordered read of the ladder, cached like the leaderboard's pages (it changes when they
+    do), so a submission page looks its rank up instead of counting the submissions above it
+    (a scan of the table on every view, issue 13)."""
+
+    def compute() -> dict[int, int]:
+        ids = session.scalars(
+            select(Submission.id)
+            .join(SubmissionVersion, SubmissionVersion.id == Submission.active_version_id)
+            .where(Submission.status == "active", SubmissionVersion.car == car)
+            .order_by(_provisional(provisional_races), Submission.ordinal.desc(), Submission.id)
+        )
+        return {sub_id: rank for rank, sub_id in enumerate(ids, start=1)}
+
+    return cache_for(session).get(
+        ("ladder-ranks", car, provisional_races),
+        _leaderboard_fingerprint(session),
+        compute,
+        max_age_s,
     )
-    return better + 1
 
 
-def submission_detail(session: Session, submission_id: int, *, races: int = 20) -> SubmissionDetail:
-    """A submission with its versions, its ``races`` latest races and its rating history."""
+def submission_detail(
+    session: Session,
+    submission_id: int,
+    *,
+    races: int = 20,
+    provisional_races: int = PROVISIONAL_RACES,
+) -> SubmissionDetail:
+    """A submission with its versions, its ``races`` latest races and its rating history;
+    its rank counts ``provisional_races`` as the leaderboard does."""
     sub = session.get(Submission, submission_id)
     if sub is None:
         raise NotFound(f"no submission {submission_id}")
@@ -531,7 +553,7 @@ def submission_detail(session: Session, submission_id: int, *, races: int = 20) 
             versions[0].car if versions else None,
         ),
         description=sub.description,
-        rank=submission_rank(session, sub),
+        rank=submission_rank(session, sub, provisional_races=provisional_races),
         versions=[VersionInfo.model_validate(v) for v in versions],
         recent_races=submission_races(session, submission_id, per_page=races).items
         if races
@@ -591,26 +613,45 @@ def rating_history(session: Session, submission_id: int) -> list[RatingPoint]:
 # ---- races -----------------------------------------------------------------------------------
 
 
-def _race_summaries(races: Sequence[Race]) -> list[RaceSummary]:
-    return [RaceSummary(**_race_fields(r)) for r in races]
-
-
-def _race_fields(race: Race) -> dict[str, Any]:
-    winner = next((e for e in race.entries if e.position == 1 and e.status == "finished"), None)
+def _race_fields(race: Any, entries: Sequence[Any]) -> dict[str, Any]:
+    """A :class:`RaceSummary`'s fields: ``race`` has the race's columns as attributes (a
+    :class:`Race`, or a row read by :func:`_race_summaries`), ``entries`` its cars (objects
+    with ``position``, ``status``, ``name``, ``submission_id``)."""
+    winner = next((e for e in entries if e.position == 1 and e.status == "finished"), None)
     return {
-        "id": race.id,
-        "kind": race.kind,
-        "status": race.status,
-        "track": race.track,
-        "car": race.car,
-        "laps": race.laps,
-        "seed": race.seed,
-        "n_cars": len(race.entries),
+        **{name: getattr(race, name) for name in _SUMMARY_COLUMNS},
+        "n_cars": len(entries),
         "winner": winner.name if winner else None,
         "winner_submission_id": winner.submission_id if winner else None,
-        "created_at": race.created_at,
-        "finished_at": race.finished_at,
     }
+
+
+# The RaceSummary fields stored as they are in the races table (the rest come from the cars).
+_SUMMARY_COLUMNS = tuple(name for name in RaceSummary.model_fields if name in Race.__table__.c)
+
+
+def _race_summaries(session: Session, ids_stmt: Select[Any]) -> list[RaceSummary]:
+    """Summaries of the races whose ids ``ids_stmt`` selects, in its order.
+
+    Plain rows, not ORM objects: a list page reads 50 races and their ~250 cars, and building
+    objects with every column (JSON decoded) was most of its time (issue 13)."""
+    ids = list(session.scalars(ids_stmt))
+    if not ids:
+        return []
+    columns = [Race.__table__.c[name] for name in _SUMMARY_COLUMNS]
+    rows = {row.id: row for row in session.execute(select(*columns).where(Race.id.in_(ids)))}
+    cars: dict[int, list[Any]] = {race_id: [] for race_id in ids}
+    for car in session.execute(
+        select(
+            RaceEntry.race_id,
+            RaceEntry.position,
+            RaceEntry.status,
+            RaceEntry.name,
+            RaceEntry.submission_id,
+        ).where(RaceEntry.race_id.in_(ids))
+    ):
+        cars[car.race_id].append(car)
+    return [RaceSummary(**_race_fields(rows[i], cars[i])) for i in ids if i in rows]
 
 
 def races(
@@ -647,15 +688,15 @@ def races(
             lambda: _count(session, count),
             SNAPSHOT_MAX_AGE_S,
         )
-    rows = session.scalars(
-        select(Race)
+    items = _race_summaries(
+        session,
+        select(Race.id)
         .where(*where)
         .order_by(Race.id.desc())
         .offset((page - 1) * per_page)
-        .limit(per_page)
-        .options(selectinload(Race.entries))
-    ).all()
-    return Page(items=_race_summaries(rows), total=total, page=page, per_page=per_page)
+        .limit(per_page),
+    )
+    return Page(items=items, total=total, page=page, per_page=per_page)
 
 
 def submission_races(
@@ -665,20 +706,15 @@ def submission_races(
     page, per_page = _clamp(page, per_page)
     mine = (RaceEntry.submission_id == submission_id) & ~RaceEntry.race_id.in_(_robustness_ids())
     total = _count(session, select(func.count(RaceEntry.id)).where(mine))
-    ids = session.scalars(
+    items = _race_summaries(
+        session,
         select(RaceEntry.race_id)
         .where(mine)
         .order_by(RaceEntry.race_id.desc())
         .offset((page - 1) * per_page)
-        .limit(per_page)
-    ).all()
-    rows = session.scalars(
-        select(Race)
-        .where(Race.id.in_(ids))
-        .order_by(Race.id.desc())
-        .options(selectinload(Race.entries))
-    ).all()
-    return Page(items=_race_summaries(rows), total=total, page=page, per_page=per_page)
+        .limit(per_page),
+    )
+    return Page(items=items, total=total, page=page, per_page=per_page)
 
 
 def _robustness_ids() -> Select[Any]:
@@ -731,7 +767,7 @@ def race_detail(session: Session, race_id: int) -> RaceDetail:
         for e in race.entries
     ]
     return RaceDetail(
-        **_race_fields(race),
+        **_race_fields(race, race.entries),
         entries=entries,
         duration_s=race.duration_s,
         sandbox=race.sandbox,
@@ -886,9 +922,22 @@ def submission_entries(
 
 def track_bests(session: Session, submission_id: int) -> list[TrackBest]:
     """A submission's best lap on every track it has raced ranked, by track name."""
+    # The tracks it raced on first (its entries' index), then its records by the
+    # (track, submission) index: records have no index on the submission alone, and a scan of
+    # every record cost PostgreSQL 20 ms at 100,000 races (issue 13).
+    raced = list(
+        session.scalars(
+            select(Race.track)
+            .join(RaceEntry, RaceEntry.race_id == Race.id)
+            .where(RaceEntry.submission_id == submission_id)
+            .distinct()
+        )
+    )
+    if not raced:
+        return []
     rows = session.scalars(
         select(TrackRecord)
-        .where(TrackRecord.submission_id == submission_id)
+        .where(TrackRecord.track.in_(raced), TrackRecord.submission_id == submission_id)
         .order_by(TrackRecord.track)
     )
     return [TrackBest(track=r.track, best_lap=r.best_lap, race_id=r.race_id) for r in rows]

@@ -279,10 +279,17 @@ def race_page(
 
 @web_router.get("/submissions/{submission_id}", response_class=HTMLResponse)
 def submission_page(
-    request: Request, session: SessionDep, pages: PageDep, submission_id: IdPath, viewer: ViewerDep
+    request: Request,
+    session: SessionDep,
+    settings: SettingsDep,
+    pages: PageDep,
+    submission_id: IdPath,
+    viewer: ViewerDep,
 ) -> HTMLResponse:
     """One submission: facts, rating history chart, versions and races."""
-    sub = queries.submission_detail(session, submission_id, races=0)
+    sub = queries.submission_detail(
+        session, submission_id, races=0, provisional_races=settings.provisional_races
+    )
     races = queries.submission_entries(
         session, submission_id, page=pages.page, per_page=pages.per_page
     )

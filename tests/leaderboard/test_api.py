@@ -290,6 +290,43 @@ def test_cached_job_counts_follow_the_queue(
     assert counts() == truth() and truth()["failed"] >= 1 and truth()["queued"] == 0
 
 
+def test_race_lists_agree_with_each_race(client: TestClient, seeded: Seeded) -> None:
+    """Lists read races as plain rows (issue 13's speed-up); each summary must say what the
+    race's own page says (winner, car count and every stored field)."""
+    listed = client.get("/api/races?per_page=200").json()["items"]
+    listed += client.get(f"/api/submissions/{seeded.submission_ids[0]}/races").json()["items"]
+    assert len({r["id"] for r in listed}) >= len(seeded.race_ids)
+    for summary in listed:
+        detail = client.get(f"/api/races/{summary['id']}").json()
+        assert summary == {k: detail[k] for k in summary}, summary["id"]
+        assert summary["n_cars"] == len(detail["entries"])
+
+
+@pytest.mark.parametrize("k", [0, 3, 50])
+def test_a_submissions_rank_is_its_leaderboard_place(tmp_path: Path, k: int) -> None:
+    """The rank on a submission's page is its row in the leaderboard, for any
+    ``provisional_races`` (it used to count the default of 5), and follows rating changes."""
+    from leaderboard.app import create_app
+    from tests.leaderboard import factories
+
+    settings = Settings(data_dir=tmp_path / "data", tracks=["oval"], provisional_races=k)
+    app = create_app(settings)
+    session = app.state.sessionmaker()
+    factories.seed(session, settings, n_submissions=6, n_races=4)
+
+    def check(c: TestClient) -> None:
+        rows = c.get("/api/leaderboard").json()["items"]
+        assert len(rows) == 6
+        for row in rows:
+            assert c.get(f"/api/submissions/{row['submission_id']}").json()["rank"] == row["rank"]
+
+    with TestClient(app) as c:
+        check(c)
+        factories.seed(session, settings, n_submissions=0, n_races=3, seed=1)  # ratings move
+        check(c)
+    session.close()
+
+
 def test_tracks_count_finished_ranked_races_only(
     client: TestClient, db: Session, seeded: Seeded
 ) -> None:

@@ -81,12 +81,14 @@ def upload_version(
 
 @router.delete("/submissions/{submission_id}", response_model=queries.SubmissionDetail)
 def withdraw_submission(
-    session: SessionDep, user: CurrentUser, submission_id: IdPath
+    session: SessionDep, settings: SettingsDep, user: CurrentUser, submission_id: IdPath
 ) -> queries.SubmissionDetail:
     """Withdraw one of your submissions from the leaderboard (403 if someone else's)."""
     uploads.withdraw(session, user=user, submission_id=submission_id)
     session.commit()
-    return queries.submission_detail(session, submission_id)
+    return queries.submission_detail(
+        session, submission_id, provisional_races=settings.provisional_races
+    )
 
 
 @router.get("/submissions", response_model=queries.Page[queries.SubmissionSummary])
@@ -102,11 +104,14 @@ def list_submissions(
 @router.get("/submissions/{submission_id}", response_model=queries.SubmissionDetail)
 def get_submission(
     session: SessionDep,
+    settings: SettingsDep,
     submission_id: IdPath,
     races: Annotated[int, Query(ge=0, le=200, description="recent races included")] = 20,
 ) -> queries.SubmissionDetail:
     """A submission: rating, rank, versions, recent races, rating history."""
-    return queries.submission_detail(session, submission_id, races=races)
+    return queries.submission_detail(
+        session, submission_id, races=races, provisional_races=settings.provisional_races
+    )
 
 
 @router.get("/submissions/{submission_id}/races", response_model=queries.Page[queries.RaceSummary])
