@@ -11,7 +11,11 @@ run, against the same in-process figures.
    and a sandboxed policy that only returns zeros gives each mode's round trip alone (the
    shared-memory channel, its wake-ups and the checks). The observations are timed in
    ``--blocks`` blocks, one block of each policy in turn; each figure is the median of its
-   blocks' means, and the ratio is sandboxed / in-process time per step.
+   blocks' means, and the ratio is sandboxed / in-process time per step. Beside the wall
+   time, CPU time from ``/proc/<pid>/schedstat``: this process's plus the sandbox's
+   processes' (the "CPU ratio" compares the work done, whatever the load), and the time
+   they spent runnable but waiting for a CPU — on a loaded machine, every hand-over between
+   two processes risks such a wait, which an in-process call never pays.
 2. **Races per minute.** One-lap races with four pursuit cars: in-process, and for each mode
    four sandboxed cars two ways: ``fresh`` (each race starts four sandboxes, loads the
    policies, races, kills them) and ``pooled`` (the ``--races`` races are one batch:
@@ -103,12 +107,48 @@ def record_observations(track: str, steps: int) -> list[Any]:
     return out
 
 
-def time_per_step(policy: Any, observations: list[Any]) -> float:
-    """Mean seconds per ``act`` over ``observations``."""
+def _schedstat(pids: list[int]) -> tuple[int, int]:
+    """Nanoseconds on a CPU and waiting for one (``/proc/<pid>/schedstat``), summed."""
+    cpu = wait = 0
+    for pid in pids:
+        try:
+            fields = Path(f"/proc/{pid}/schedstat").read_text().split()
+        except OSError:
+            continue
+        cpu, wait = cpu + int(fields[0]), wait + int(fields[1])
+    return cpu, wait
+
+
+def _sandbox_pids(policy: Any) -> list[int]:
+    """The host pids of a sandboxed policy's processes (its id is in their command line)."""
+    marker = str(getattr(policy, "sandbox_id", None) or "").encode()
+    found = []
+    for entry in Path("/proc").iterdir():
+        if marker and entry.name.isdigit():
+            try:
+                if marker in (entry / "cmdline").read_bytes():
+                    found.append(int(entry.name))
+            except OSError:
+                continue
+    return found
+
+
+def time_per_step(policy: Any, observations: list[Any], pids: list[int]) -> tuple[float, ...]:
+    """Per ``act`` over ``observations``, s: wall time; CPU time of this process and of
+    ``pids`` (the sandbox's); time this process and ``pids`` waited for a CPU."""
+    host0, side0 = _schedstat([os.getpid()]), _schedstat(pids)
     start = time.perf_counter()
     for obs in observations:
         policy.act(obs)
-    return (time.perf_counter() - start) / len(observations)
+    wall = time.perf_counter() - start
+    host1, side1 = _schedstat([os.getpid()]), _schedstat(pids)
+    n = len(observations)
+    return (
+        wall / n,
+        (host1[0] - host0[0]) * 1e-9 / n,
+        (side1[0] - side0[0]) * 1e-9 / n,
+        (host1[1] - host0[1] + side1[1] - side0[1]) * 1e-9 / n,
+    )
 
 
 def _in_mode(mode: str, make: Any) -> Any:
@@ -151,23 +191,35 @@ def per_step(
             policy.reset(0)
             for obs in observations[:20]:
                 policy.act(obs)
-        times: dict[str, list[float]] = {key: [] for key in policies}
+        pids = {key: _sandbox_pids(policy) for key, policy in policies.items()}
+        times: dict[str, list[tuple[float, ...]]] = {key: [] for key in policies}
         for part in parts:
             for key, policy in policies.items():
-                times[key].append(time_per_step(policy, part))
+                times[key].append(time_per_step(policy, part, pids[key]))
     finally:
         for policy in policies.values():
             getattr(policy, "close", lambda: None)()
-    median = {key: statistics.median(t) for key, t in times.items()}
-    in_process = median["in_process"]
-    out: dict[str, Any] = {"in_process_us": in_process * 1e6}
+    # each figure: the median over blocks (wall, host CPU, sandbox CPU, waiting for a CPU)
+    median = {
+        key: [statistics.median(col) for col in zip(*t, strict=True)] for key, t in times.items()
+    }
+    wall, cpu, _, wait = median["in_process"]
+    out: dict[str, Any] = {
+        "in_process_us": wall * 1e6,
+        "in_process_cpu_us": cpu * 1e6,
+        "in_process_cpu_wait_us": wait * 1e6,
+    }
     for mode in modes:
         boxed, trip = median[f"{mode}/pursuit"], median[f"{mode}/zeros"]
         out[mode] = {
-            "sandboxed_us": boxed * 1e6,
-            "round_trip_us": trip * 1e6,
-            "overhead_us": (boxed - in_process) * 1e6,
-            "ratio": boxed / in_process,
+            "sandboxed_us": boxed[0] * 1e6,
+            "round_trip_us": trip[0] * 1e6,
+            "overhead_us": (boxed[0] - wall) * 1e6,
+            "ratio": boxed[0] / wall,
+            "sandboxed_cpu_us": (boxed[1] + boxed[2]) * 1e6,  # the host's and the sandbox's
+            "round_trip_cpu_us": (trip[1] + trip[2]) * 1e6,
+            "cpu_ratio": (boxed[1] + boxed[2]) / cpu,
+            "sandboxed_cpu_wait_us": boxed[3] * 1e6,
         }
     return out
 
@@ -279,9 +331,19 @@ def print_table(doc: dict[str, Any]) -> None:
     steps, races = doc["per_step"], doc["races"]
     step_table = Table(
         title=f"Per step, pursuit policy ({doc['steps']} observations, {doc['track']}); "
-        f"in-process: {steps['in_process_us']:.0f} µs"
+        f"in-process: {steps['in_process_us']:.0f} µs wall, "
+        f"{steps['in_process_cpu_us']:.0f} µs CPU"
     )
-    for name in ("mode", "sandboxed µs", "round trip µs", "overhead µs", "sandboxed / in-process"):
+    for name in (
+        "mode",
+        "sandboxed µs",
+        "round trip µs",
+        "overhead µs",
+        "sandboxed / in-process",
+        "CPU µs (host + sandbox)",
+        "round trip CPU µs",
+        "CPU ratio",
+    ):
         step_table.add_column(name, justify="right")
     race_table = Table(
         title=f"One-lap races with 4 pursuit cars ({races.get('races', 0)} each); in-process: "
@@ -299,7 +361,7 @@ def print_table(doc: dict[str, Any]) -> None:
         race_table.add_column(name, justify="right")
     for mode, why in doc["skipped"].items():
         console.print(f"{mode}: skipped ({why})")
-    for mode in (m for m in steps if m != "in_process_us"):
+    for mode in (m for m, v in steps.items() if isinstance(v, dict)):
         s = steps[mode]
         step_table.add_row(
             mode,
@@ -307,6 +369,9 @@ def print_table(doc: dict[str, Any]) -> None:
             f"{s['round_trip_us']:.0f}",
             f"{s['overhead_us']:.0f}",
             f"{s['ratio']:.2f}×",
+            f"{s['sandboxed_cpu_us']:.0f}",
+            f"{s['round_trip_cpu_us']:.0f}",
+            f"{s['cpu_ratio']:.2f}×",
         )
         if mode not in races:
             continue

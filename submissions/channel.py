@@ -32,10 +32,10 @@ other side cannot touch.
 The host decodes a reply only from its own copy: one copy of the slot's first
 :data:`FIRST_COPY` bytes, which holds any action, OK or short text whole; a longer frame
 (the hello, an error's text) is bounded by the slot from that copy's header
-(:func:`frame_length`) and copied again whole, and everything is checked again on that
-second copy (:func:`decode_frame`). A worker scribbling in the slot meanwhile gets a
-refused frame or a wrong action (validated like any other), never a host fault, a read
-outside the slot or a blocked host.
+(:class:`~submissions.protocol.ShortFrame`) and copied again whole, and everything is
+checked again on that second copy (:func:`~submissions.protocol.decode_frame`). A worker
+scribbling in the slot meanwhile gets a refused frame or a wrong action (validated like any
+other), never a host fault, a read outside the slot or a blocked host.
 
 The worker's side, :class:`WorkerChannel`, waits on the ring and answers in the reply slot.
 """
@@ -52,8 +52,8 @@ from submissions.protocol import (
     HEAD_MAX,
     Frame,
     ProtocolError,
+    ShortFrame,
     decode_frame,
-    frame_length,
 )
 
 REPLY_BYTES = 16 << 10  # the reply slot: an action, OK, the hello or ≤ 4 KiB of error text
@@ -85,12 +85,12 @@ def _read_frame(memory: mmap.mmap, start: int, room: int) -> Frame:
     Raises:
         ProtocolError: no valid frame, or one longer than ``room``.
     """
-    first = memory[start : start + min(room, FIRST_COPY)]
-    length = frame_length(first, room)
+    try:
+        return decode_frame(memory[start : start + min(room, FIRST_COPY)], room, trailing=True)
+    except ShortFrame as short:
+        length = short.length
     if length > room:
         raise ProtocolError(f"a frame of {length} bytes in a {room}-byte slot")
-    if length <= len(first):
-        return decode_frame(first, room, trailing=True)
     return decode_frame(memory[start : start + length], room)
 
 

@@ -21,9 +21,9 @@ offset   type      field
 Text (error messages, the worker's hello) travels as a uint8 array of UTF-8 (JSON where it
 is structured). Every field is checked before a byte of payload is trusted: magic, kind,
 dtype, ndim, ``payload == prod(shape) × itemsize`` and the size cap; a reader decodes only
-its own copy of the bytes (:func:`frame_length` tells how much to copy, :func:`decode_frame`
-decodes the copy), so a peer scribbling in the shared memory meanwhile can at most produce
-a wrong or refused frame. Nothing is unpickled, so a
+its own copy of the bytes (:func:`decode_frame` decodes a copy, or says how much more to
+copy: :class:`ShortFrame`), so a peer scribbling in the shared memory meanwhile can at most
+produce a wrong or refused frame. Nothing is unpickled, so a
 hostile peer can send at most a wrong array, which the receiver then validates.
 
 A session, host → worker: ``RESET`` (int64 ``[seed]``, or empty for no seed) is answered by
@@ -89,6 +89,18 @@ _KINDS = {int(kind): kind for kind in Kind}
 
 class ProtocolError(SubmissionError):
     """A frame broke the protocol: bad magic, unknown kind or dtype, too large, truncated."""
+
+
+class ShortFrame(ProtocolError):
+    """The bytes hold the start of a valid frame, not all of it.
+
+    Attributes:
+        length: the whole frame's length, bytes (from its checked header).
+    """
+
+    def __init__(self, length: int, have: int) -> None:
+        super().__init__(f"a frame of {length} bytes in {have} bytes")
+        self.length = length
 
 
 def cap_text(text: str, limit: int = MAX_TEXT) -> str:
@@ -157,38 +169,28 @@ def encode_json(kind: Kind, value: Any, seq: int = 0) -> bytes:
     return encode_text(kind, json.dumps(value), seq)
 
 
-def frame_length(head: bytes, max_frame: int = MAX_FRAME) -> int:
-    """The whole length in bytes of the frame that ``head`` begins (header, shape, payload).
-
-    ``head`` is a copy of at least the header (:data:`HEAD_MAX` bytes always suffice); only
-    the header is read, and checked (:func:`parse_header`).
-
-    Raises:
-        ProtocolError: a bad header, a payload over ``max_frame``, or ``head`` too short.
-    """
-    _kind, _dtype, ndim, _seq, nbytes = parse_header(head, max_frame)
-    return HEADER.size + DIM.size * ndim + nbytes
-
-
 def decode_frame(data: bytes, max_frame: int = MAX_FRAME, *, trailing: bool = False) -> Frame:
     """The frame that ``data`` holds: exactly all of ``data``, or with ``trailing`` its
     start (a copy larger than the frame; what follows the frame is ignored).
 
     Raises:
+        ShortFrame: ``data`` holds a valid header but not the whole frame.
         ProtocolError: a bad header, a shape that does not match the payload, an axis or a
-            payload over ``max_frame``, ``data`` shorter than the frame, or (without
-            ``trailing``) longer.
+            payload over ``max_frame``, or (without ``trailing``) ``data`` longer than the
+            frame.
     """
     kind, dtype, ndim, seq, nbytes = parse_header(data, max_frame)
     head = HEADER.size + DIM.size * ndim
     if len(data) < head:
-        raise ProtocolError(f"a frame header of {head} bytes in {len(data)} bytes")
+        raise ShortFrame(head + nbytes, len(data))
     shape = _SHAPES[ndim].unpack_from(data, HEADER.size)
     # No axis longer than the cap (a zero-size array cannot smuggle in an axis of 2⁶³,
     # which numpy refuses with a ValueError), and the product must match the payload.
     if max(shape, default=0) > max_frame or math.prod(shape) * dtype.itemsize != nbytes:
         raise ProtocolError(f"frame shape {shape} of {dtype} does not match {nbytes} bytes")
-    if len(data) != head + nbytes and not (trailing and len(data) > head + nbytes):
+    if len(data) < head + nbytes:
+        raise ShortFrame(head + nbytes, len(data))
+    if len(data) > head + nbytes and not trailing:
         raise ProtocolError(f"a frame of {head + nbytes} bytes in {len(data)} bytes")
     try:
         array = np.frombuffer(data, dtype=dtype, count=math.prod(shape), offset=head)

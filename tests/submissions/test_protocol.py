@@ -18,12 +18,12 @@ from submissions.protocol import (
     SEQ_MODULO,
     Kind,
     ProtocolError,
+    ShortFrame,
     cap_text,
     decode_frame,
     encode,
     encode_json,
     encode_text,
-    frame_length,
 )
 
 DTYPES = [np.float32, np.float64, np.int32, np.int64, np.uint8, np.bool_]
@@ -38,7 +38,11 @@ DTYPES = [np.float32, np.float64, np.int32, np.int64, np.uint8, np.bool_]
 )
 def test_arrays_round_trip_exactly(arr: np.ndarray, kind: Kind) -> None:
     data = encode(kind, arr)
-    assert frame_length(data[:HEAD_MAX]) == len(data)  # the head alone tells the length
+    if len(data) > HEAD_MAX:  # the head alone tells how much more to copy
+        with pytest.raises(ShortFrame) as short:
+            decode_frame(data[:HEAD_MAX], trailing=True)
+        assert short.value.length == len(data)
+    assert decode_frame(data + b"more", trailing=True).array.shape == arr.shape
     frame = decode_frame(data)
     assert frame.kind == kind
     assert frame.array.dtype == arr.dtype and frame.array.shape == arr.shape
@@ -55,7 +59,7 @@ def test_a_frame_must_span_its_bytes_exactly() -> None:
     with pytest.raises(ProtocolError, match=f"in {len(data) + 3} bytes"):
         decode_frame(data + b"\0" * 3)
     with pytest.raises(ProtocolError, match="needs 16 bytes"):
-        frame_length(data[:15])
+        decode_frame(data[:15], trailing=True)
 
 
 def test_other_numeric_dtypes_are_widened_and_text_travels_as_utf8() -> None:
@@ -110,9 +114,10 @@ def _header(
     ids=["magic", "kind", "dtype", "ndim", "oversize", "huge", "shape-mismatch"],
 )
 def test_bad_headers_are_refused_before_any_payload(data: bytes, message: str) -> None:
-    if message != "does not match":  # the header alone is bad: refused before the shape
-        with pytest.raises(ProtocolError, match=message):
-            frame_length(data)
+    if message != "does not match":  # the header alone is bad: refused, not "copy more"
+        with pytest.raises(ProtocolError, match=message) as err:
+            decode_frame(data[:16], trailing=True)
+        assert not isinstance(err.value, ShortFrame)
     with pytest.raises(ProtocolError, match=message):
         decode_frame(data)
 
@@ -127,7 +132,7 @@ def test_the_frame_cap_is_inclusive() -> None:
     exact = encode(Kind.ACT, np.zeros(16, np.uint8))
     assert decode_frame(exact, max_frame=16).array.size == 16
     with pytest.raises(ProtocolError, match="exceeds"):
-        frame_length(encode(Kind.ACT, np.zeros(17, np.uint8))[:16], max_frame=16)
+        decode_frame(encode(Kind.ACT, np.zeros(17, np.uint8))[:16], max_frame=16, trailing=True)
     with pytest.raises(ProtocolError, match="exceeds"):
         encode(Kind.ACT, np.zeros(MAX_FRAME + 1, np.uint8))
     assert len(encode(Kind.ACT, np.zeros(MAX_FRAME, np.uint8))) == HEADER.size + 8 + MAX_FRAME
