@@ -311,7 +311,7 @@ def episode_step(
     off_time = where(off_track, st.off_time + rules.dt, 0.0)
 
     contact = sensed.touching & active[..., :, None] & active[..., None, :]
-    if isinstance(contact, np.ndarray) and not contact.any():
+    if isinstance(contact, np.ndarray) and not np.count_nonzero(contact):
         # The common case on one race, and the same result without the work.
         at_fault, closing = contact, ops.zeros(contact.shape)
     else:

@@ -456,18 +456,18 @@ class RaceEpisodeEnv(ParallelEnv):
         assert out is not None
         # Events are rare: each bookkeeping line is skipped (one cheap test) when none happened.
         lap_done = out.lap_done[0]
-        if lap_done.any():
+        if np.count_nonzero(lap_done):
             for i in np.flatnonzero(lap_done):
                 self.lap_times[i].append(round(float(out.lap_time[0, i]), 10))
         new_contact, at_fault = out.new_contact[0], out.at_fault[0]
-        if new_contact.any():
+        if np.count_nonzero(new_contact):
             self.collision_count += new_contact.any(axis=1)
             self.at_fault_count += (at_fault & new_contact).any(axis=1)
         off_track = out.off_track[0]
-        if off_track.any():
+        if np.count_nonzero(off_track):
             self.off_track_count += off_track & (self.off_time <= self.dt)
         dnf = out.dnf[0]
-        if dnf.any():
+        if np.count_nonzero(dnf):
             for i in np.flatnonzero(dnf):
                 self.dnf_reason[i] = DNF_REASONS[int(dnf[i])]
         terms = {k: v[0] for k, v in out.terms.items()}
@@ -490,7 +490,9 @@ class RaceEpisodeEnv(ParallelEnv):
         off_list, wall_list = off_track.tolist(), out.wall[0].tolist()
         term_lists = {name: v.tolist() for name, v in terms.items()}
         contact, closing = out.contact[0], out.closing[0]
-        touching: list[bool] = contact.any(axis=1).tolist()
+        touching: list[bool] = (
+            contact.any(axis=1).tolist() if np.count_nonzero(contact) else [False] * len(contact)
+        )
         cars = self._car_lists(frame)
         for agent in racing:
             if agent.startswith(NATURE_PREFIX):
@@ -525,7 +527,7 @@ class RaceEpisodeEnv(ParallelEnv):
                     result_term[nat] = term_list[k]
                     result_trunc[nat] = trunc_list[k]
         done = out.terminated[0] | out.truncated[0]
-        if done.any():
+        if np.count_nonzero(done):
             for i in np.flatnonzero(done):
                 self._pipeline_park(int(i))
         if not self.park_finished:

@@ -55,7 +55,6 @@ class Lidar:
         self.first = -0.5 * fov
         self.angles: FloatArray = self.first + self.step * np.arange(n_rays, dtype=np.float64)
         self.dirs: FloatArray = np.stack([np.cos(self.angles), np.sin(self.angles)], axis=1)
-        self._reach = (max_range * 1.5 + 1.0) ** 2  # m²: segments beyond cannot be hit
         self._shifts = np.array([0.0, -2 * math.pi]) - self.first  # rad, as the first ray
         spacing = float(np.mean(np.linalg.norm(np.diff(walls.left, axis=0), axis=1)))
         self.half_window = math.ceil(1.5 * max_range / spacing) + 1
@@ -65,6 +64,11 @@ class Lidar:
         self._table: FloatArray = np.hstack(
             [left, np.roll(left, -1, axis=0), right, np.roll(right, -1, axis=0)]
         )  # (W, 8) m
+        # A segment whose ends both lie farther than this from a car is beyond the range
+        # all along (each of its points is within half its length of an end): m², walls.
+        ends = self._table.reshape(-1, 2, 2, 2)  # (W, wall, [start, end], xy)
+        longest = float(np.max(np.linalg.norm(ends[:, :, 1] - ends[:, :, 0], axis=-1)))
+        self._wall_reach = (max_range + 0.5 * longest + 0.01) ** 2
         # Ray directions tiled over cars (flat index car · n_rays + ray), grown on demand.
         self._dir_x: FloatArray = self.dirs[:, 0].copy()
         self._dir_y: FloatArray = self.dirs[:, 1].copy()
@@ -79,15 +83,14 @@ class Lidar:
             usable = np.ones((n, n_seg), dtype=bool)
             if n_edges:  # a car's own four edges are not seen by its lidar
                 usable[:, n_wall:] = ~np.repeat(np.eye(n, dtype=bool), 4, axis=1)
-            # (car, segment, shift) flattened: segment and car of each, and the car's first
-            # flat output index.
-            seg_of = np.repeat(np.arange(n * n_seg), 2)
+            # m² per segment beyond which it cannot be hit: walls from their longest segment;
+            # the cars' edges (at most a car long) get a generous 1.5 ranges + 1 m.
+            reach = np.full(n_seg, (self.max_range * 1.5 + 1.0) ** 2)
+            reach[:n_wall] = self._wall_reach
             if len(self._dir_x) < n * self.n_rays:
                 self._dir_x = np.tile(self.dirs[:, 0], n)
                 self._dir_y = np.tile(self.dirs[:, 1], n)
-            self._layouts[key] = _Layout(
-                n_seg=n_seg, usable=usable, seg_of=seg_of, base_of=(seg_of // n_seg) * self.n_rays
-            )
+            self._layouts[key] = _Layout(n_seg=n_seg, usable=usable, reach=reach)
         return self._layouts[key]
 
     def scan(
@@ -129,30 +132,41 @@ class Lidar:
         ax, ay = cos * dx + sin * dy, cos * dy - sin * dx
         dx, dy = seg[..., 2] - x, seg[..., 3] - y
         bx, by = cos * dx + sin * dy, cos * dy - sin * dx
+        # Only the segments within reach go on (flat (car, segment) indices): their number,
+        # not the window's, sets the cost of what follows.
+        near = layout.usable & (np.minimum(ax * ax + ay * ay, bx * bx + by * by) < layout.reach)
+        keep = near.ravel().nonzero()[0]
+        if len(keep) == 0:
+            out = np.empty(n * self.n_rays)
+            out.fill(self.max_range)
+            return out.reshape(n, self.n_rays)
+        ax, ay, bx, by = ax.ravel()[keep], ay.ravel()[keep], bx.ravel()[keep], by.ravel()[keep]
         span = np.arctan2(ax * by - ay * bx, ax * bx + ay * by)  # signed angle a → b
         # Interval of angles the segment covers, rotated to start at or after the first ray;
         # its part beyond one turn wraps round to the first rays (the second shift below).
         lo = np.arctan2(ay, ax) + np.minimum(span, 0.0)
         lo = self.first + np.mod(lo - self.first, 2 * math.pi)
         hi = lo + np.abs(span)
-        usable = layout.usable & (np.minimum(ax * ax + ay * ay, bx * bx + by * by) < self._reach)
-        k_lo = np.ceil((lo[..., None] + self._shifts) / self.step - 1e-9)
+        k_lo = np.ceil((lo[:, None] + self._shifts) / self.step - 1e-9)
         k_hi = np.minimum(
-            np.floor((hi[..., None] + self._shifts) / self.step + 1e-9), self.n_rays - 1
+            np.floor((hi[:, None] + self._shifts) / self.step + 1e-9), self.n_rays - 1
         )
         k_lo = np.maximum(k_lo, 0).astype(np.int64).ravel()
+        # Array methods, not numpy's functions: the same results without the dispatch cost,
+        # which dominates on arrays this small.
         counts = np.maximum(k_hi.astype(np.int64).ravel() - k_lo + 1, 0)
-        counts *= np.repeat(usable.ravel(), 2)
-        out = np.full(n * self.n_rays, self.max_range)
-        ends = np.cumsum(counts)
+        out = np.empty(n * self.n_rays)
+        out.fill(self.max_range)
+        ends = counts.cumsum()
         total = int(ends[-1])
         if total == 0:
             return out.reshape(n, self.n_rays)
         # Every (segment, ray) pair as a flat output index car · n_rays + ray, and its segment.
-        flat = np.repeat(layout.base_of + k_lo - (ends - counts), counts) + np.arange(total)
-        pair_seg = np.repeat(layout.seg_of, counts)
-        pax, pay = ax.ravel()[pair_seg], ay.ravel()[pair_seg]
-        pex, pey = bx.ravel()[pair_seg] - pax, by.ravel()[pair_seg] - pay
+        first_ray = ((keep // layout.n_seg) * self.n_rays).repeat(2) + k_lo - (ends - counts)
+        flat = first_ray.repeat(counts) + np.arange(total)
+        pair_seg = (np.arange(2 * len(keep)) >> 1).repeat(counts)
+        pax, pay = ax[pair_seg], ay[pair_seg]
+        pex, pey = bx[pair_seg] - pax, by[pair_seg] - pay
         ux, uy = self._dir_x[flat], self._dir_y[flat]
         denom = ux * pey - uy * pex
         hit = np.abs(denom) > 1e-12
@@ -172,11 +186,10 @@ class _Layout:
     Attributes:
         n_seg: segments per scanner (windowed walls, then every car's edges).
         usable: (n, n_seg) False for a scanner's own edges.
-        seg_of: (n · n_seg · 2,) flat (car, segment) of each (car, segment, shift).
-        base_of: (n · n_seg · 2,) flat output index of ray 0 of that car.
+        reach: (n_seg,) m², squared distance from a scanner beyond which both ends of a
+            segment put all of it out of range.
     """
 
     n_seg: int
     usable: NDArray[np.bool_]
-    seg_of: IntArray
-    base_of: IntArray
+    reach: FloatArray

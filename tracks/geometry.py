@@ -447,9 +447,7 @@ class Track:
         """Segment index and fraction ``t`` in [0, 1) for progress values."""
         sw = self.wrap_s(s)
         # minimum/maximum: np.clip's result on integers, without its overhead (a hot path).
-        i = np.minimum(
-            np.maximum(np.searchsorted(self.s, sw, side="right") - 1, 0), self.n_points - 1
-        )
+        i = np.minimum(np.maximum(self.s.searchsorted(sw, side="right") - 1, 0), self.n_points - 1)
         t = (sw - self.s[i]) / self.segment_lengths[i]
         return i.astype(np.int64, copy=False), t
 
@@ -552,7 +550,7 @@ class Track:
         denom = np.negative(b, out=b)
         denom -= root
         # 0 where the denominator vanishes (computed only elsewhere: no 0 / 0 warnings).
-        t = np.divide(2.0 * c, denom, out=np.zeros_like(c), where=np.abs(denom) > 1e-300)
+        t = np.divide(2.0 * c, denom, out=np.zeros(c.shape), where=np.abs(denom) > 1e-300)
         ntx = t * dnx
         ntx += nx  # nt = n0 + t dn
         nty = t * dny
@@ -568,13 +566,13 @@ class Track:
         valid = (disc >= 0) & (t >= -1e-9) & (t <= 1 + 1e-9)
         cost = np.where(valid, np.abs(d), np.inf)
         rows = np.arange(len(p))
-        best = np.argmin(cost, axis=1)
+        best = cost.argmin(axis=1)  # the method: no dispatch cost (a hot path)
         seg = cand[rows, best]
         tb = np.minimum(np.maximum(t[rows, best], 0.0), 1.0)  # np.clip's values, cheaper
         db = d[rows, best]
         # Far off the road on the inside of a bend no frame solution exists: use the vertex.
         none = ~np.isfinite(cost[rows, best])
-        if np.any(none):
+        if none.any():
             v = nearest[none, 0]
             seg[none] = v
             tb[none] = 0.0
