@@ -9,6 +9,7 @@ version restarts its σ; a slower lap never replaces a track record.
 from __future__ import annotations
 
 from datetime import timedelta
+from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
 
@@ -18,7 +19,9 @@ from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import Session
 
 from leaderboard import auth, queue, uploads
+from leaderboard.db import make_engine, make_sessionmaker
 from leaderboard.matchmaking import RANKED_PRIORITY
+from leaderboard.migrations import upgrade
 from leaderboard.models import (
     SIGMA0,
     Job,
@@ -376,3 +379,30 @@ def test_a_failed_claim_on_postgresql_is_not_retried(
     with pytest.raises(OperationalError):
         queue.claim(db, owner="w", lease_s=30)
     assert flaky.calls == 1
+
+
+def test_a_claim_on_postgresql_takes_the_next_job_while_another_claim_holds_the_first(
+    pg_url: str, tmp_path: Path
+) -> None:
+    # SKIP LOCKED: a worker never waits for another worker's open claim transaction. The
+    # claimer gives up on any row lock after 2 s, so waiting (FOR UPDATE without SKIP LOCKED,
+    # or the SQLite statement) shows as an error instead of a slow pass.
+    settings = Settings(data_dir=tmp_path, tracks=["oval"], database_url=pg_url)
+    engine = make_engine(pg_url)
+    upgrade(pg_url, engine=engine)
+    impatient = make_engine(pg_url, connect_args={"options": "-c lock_timeout=2000"})
+    try:
+        with make_sessionmaker(engine)() as db:
+            subs = _subs(db, settings, 2)
+            first, second = _race(db, subs, [0, 1]).id, _race(db, subs, [0, 1]).id
+        with make_sessionmaker(engine)() as holder, make_sessionmaker(impatient)() as other:
+            # A worker mid-claim: the first job's row is locked until it commits.
+            holder.execute(select(Job.id).where(Job.race_id == first).with_for_update()).all()
+            lease = queue.claim(other, owner="w2", lease_s=60)
+            assert lease is not None and lease.race_id == second
+            holder.rollback()
+            again = queue.claim(other, owner="w2", lease_s=60)  # the lock is gone: the first
+            assert again is not None and again.race_id == first
+    finally:
+        impatient.dispose()
+        engine.dispose()
