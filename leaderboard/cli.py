@@ -28,6 +28,7 @@ COMMAND_MODULES = (
     "leaderboard.demo",
     "leaderboard.cli_server",
     "leaderboard.cli_participant",
+    "leaderboard.cli_tournament",
 )
 
 

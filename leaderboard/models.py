@@ -14,6 +14,8 @@ web_sessions       signed-in browsers (cookie hash, the API token used, CSRF tok
 rating_history     a submission's (μ, σ) after each ranked race
 jobs               the work queue: one job per race, with lease owner/token/expiry, attempts
 track_records      best lap of each submission on each track
+tournaments        an operator's tournament: format, car, tracks, laps, seeds, status
+tournament_entrants  who takes part in a tournament (the version pinned when it was created)
 =================  =====================================================================
 
 Times are naive UTC (:func:`utcnow`), so SQLite and PostgreSQL store the same values.
@@ -184,6 +186,7 @@ class Race(Base):
         Index("ix_races_track_id", "track", "id"),
         Index("ix_races_kind_status_track", "kind", "status", "track"),  # ranked race counts
         Index("ix_races_finished_at", "finished_at"),  # track cache fingerprint
+        Index("ix_races_tournament_id", "tournament_id", "id"),  # a tournament's races
     )
 
     id: Mapped[int] = mapped_column(primary_key=True)
@@ -206,6 +209,12 @@ class Race(Base):
     # The replay log's events (laps, collisions, off-tracks, finishes, DNFs), for the page's
     # timeline: ``[{"t": s, "type": ..., "car": "car_i", ...}, ...]`` (capped, see results.py).
     events: Mapped[list[dict[str, Any]] | None] = mapped_column(JSON)
+    # A tournament's race (kind ``tournament``): its tournament and stage (``heat``, ``trial``
+    # or ``final``; leaderboard.tournaments).
+    tournament_id: Mapped[int | None] = mapped_column(
+        ForeignKey("tournaments.id", ondelete="CASCADE", name="fk_races_tournament")
+    )
+    stage: Mapped[str | None] = mapped_column(String(16))
 
     entries: Mapped[list[RaceEntry]] = relationship(
         back_populates="race", order_by="RaceEntry.car", cascade="all, delete-orphan"
@@ -355,3 +364,55 @@ class TrackRecord(Base):
     race_id: Mapped[int] = mapped_column(ForeignKey("races.id", ondelete="CASCADE"))
     best_lap: Mapped[float] = mapped_column(Float)
     set_at: Mapped[datetime] = mapped_column(DateTime, default=utcnow)
+
+
+class Tournament(Base):
+    """A tournament an operator defined (:mod:`leaderboard.tournaments`).
+
+    ``format``: ``round_robin`` (heats: every entrant in one heat per round) or
+    ``time_trial`` (a solo trial per entrant and round, then a final of the fastest
+    ``final_size``). A round is one (track, seed) pair. ``status``: ``running`` →
+    ``finished``. Its races are ``races`` rows of kind ``tournament`` (unrated).
+    """
+
+    __tablename__ = "tournaments"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    name: Mapped[str] = mapped_column(String(64))
+    format: Mapped[str] = mapped_column(String(16))
+    car: Mapped[str] = mapped_column(String(16), default=DEFAULT_CAR)
+    tracks: Mapped[list[str]] = mapped_column(JSON)
+    seeds: Mapped[list[int]] = mapped_column(JSON)
+    laps: Mapped[int] = mapped_column(Integer, default=2)
+    heat_size: Mapped[int] = mapped_column(Integer, default=4)  # most cars in a heat
+    final_size: Mapped[int] = mapped_column(Integer, default=0)  # finalists (time_trial)
+    status: Mapped[str] = mapped_column(String(16), default="running")
+    created_by: Mapped[str] = mapped_column(String(64), default="")
+    created_at: Mapped[datetime] = mapped_column(DateTime, default=utcnow)
+    finished_at: Mapped[datetime | None] = mapped_column(DateTime)
+
+    entrants: Mapped[list[TournamentEntrant]] = relationship(
+        order_by="TournamentEntrant.seed_rank", cascade="all, delete-orphan"
+    )
+
+
+class TournamentEntrant(Base):
+    """A submission in a tournament, with the version it races (pinned at creation) and its
+    seeding (1 = top seed: its ladder rank, or its place in the operator's list)."""
+
+    __tablename__ = "tournament_entrants"
+    __table_args__ = (
+        UniqueConstraint("tournament_id", "submission_id", name="uq_tournament_entrants"),
+    )
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    tournament_id: Mapped[int] = mapped_column(
+        ForeignKey("tournaments.id", ondelete="CASCADE"), index=True
+    )
+    submission_id: Mapped[int] = mapped_column(ForeignKey("submissions.id", ondelete="CASCADE"))
+    version_id: Mapped[int | None] = mapped_column(
+        ForeignKey("submission_versions.id", ondelete="SET NULL")
+    )
+    seed_rank: Mapped[int] = mapped_column(Integer)
+    name: Mapped[str] = mapped_column(String(128))  # "<submission>:v<version>"
+    source: Mapped[str] = mapped_column(String(1024))

@@ -2,7 +2,8 @@
 
 ``slipstream worker --db URL`` runs :class:`Worker`: each cycle it fails races whose leases
 ran out too often, queues the robustness runs of newly ranked versions
-(:mod:`leaderboard.robustness`; they run like races, as :func:`race_job` builds them), tops
+(:mod:`leaderboard.robustness`; they run like races, as :func:`race_job` builds them), feeds
+the tournaments' heats to the queue (:mod:`leaderboard.tournaments`), tops
 the queue up with ranked races (:mod:`leaderboard.matchmaking`), claims up to ``workers``
 races with a lease (:mod:`leaderboard.queue`), runs them through
 :func:`submissions.jobs.run_race_job` on a local process pool or a Ray cluster
@@ -45,7 +46,7 @@ from typing import TYPE_CHECKING, Any
 from sqlalchemy import and_, select, update
 from sqlalchemy.orm import Session, selectinload
 
-from leaderboard import matchmaking, queue, robustness
+from leaderboard import matchmaking, queue, robustness, tournaments
 from leaderboard.db import make_engine, make_sessionmaker
 from leaderboard.migrations import upgrade
 from leaderboard.models import Job, Race, utcnow
@@ -112,14 +113,15 @@ class WorkerStats:
 def race_job(race: Race, settings: Settings) -> RaceJob:
     """The evaluation job of a queued race (car ``i`` is entry ``car == i``); for a race of
     kind ``robustness``, the robustness run of its one entry over
-    :func:`submissions.robustness.leaderboard_grid` (no replay)."""
+    :func:`submissions.robustness.leaderboard_grid` (no replay); a tournament's time trial
+    is a solo race."""
     from submissions.jobs import Entrant, RaceJob  # noqa: PLC0415 - light, but not web-side
 
-    robustness = None
+    grid = None
     if race.kind == "robustness":
         from submissions.robustness import leaderboard_grid  # noqa: PLC0415 - numpy
 
-        robustness = tuple(leaderboard_grid())
+        grid = tuple(leaderboard_grid())
     return RaceJob(
         job_id=str(race.id),
         entrants=tuple(
@@ -136,8 +138,9 @@ def race_job(race: Race, settings: Settings) -> RaceJob:
         seed=race.seed,
         ranked=race.penalties,
         car=race.car,
-        record_viser=robustness is None,
-        robustness=robustness,
+        record_viser=grid is None,
+        robustness=grid,
+        solo=race.stage == "trial",  # a tournament's time trial: one car alone
     )
 
 
@@ -235,15 +238,19 @@ class Worker:
     # ---- one cycle -------------------------------------------------------------------------
 
     def prepare(self) -> None:
-        """Fail races that lost their lease too often; queue the robustness runs of newly
-        ranked versions (:mod:`leaderboard.robustness`) and ranked races if running low."""
+        """Fail races that lost their lease too often; move the tournaments on (queue their
+        next heats, plan finals: :func:`leaderboard.tournaments.advance`); queue the
+        robustness runs of newly ranked versions (:mod:`leaderboard.robustness`) and ranked
+        races if running low."""
         with self.sessions() as session:
             queue.expire(session)
+            # An operator's tournaments run whether or not this worker schedules the ladder.
+            tournaments.advance(session, self.settings, slots=self.workers)
             if self.schedule:
                 if self.settings.robustness:
                     robustness.schedule_robustness(session, self.settings)
                 matchmaking.top_up(session, self.settings, 2 * self.workers, self.rng)
-                session.commit()
+            session.commit()
 
     def claim(self, limit: int) -> list[queue.Lease]:
         """Claim up to ``limit`` races."""

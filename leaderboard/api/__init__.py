@@ -12,12 +12,13 @@ from leaderboard.api.routes import (
     races,
     submissions,
     tokens,
+    tournaments,
     tracks,
     users,
 )
 
 api_router = APIRouter(prefix="/api", responses=ERROR_RESPONSES)
-for _module in (leaderboard, submissions, races, tracks, users, tokens, health):
+for _module in (leaderboard, submissions, races, tournaments, tracks, users, tokens, health):
     api_router.include_router(_module.router)
 
 __all__ = ["api_router"]

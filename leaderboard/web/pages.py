@@ -23,6 +23,11 @@ page                          shows                                         JSON
 ``/tracks/{name}``            track plot, records, recent races             ``/tracks/{name}``
 ``/tracks/{name}/plot.png``   the track plot image (cached in data_dir)
 ``/users/{name}``             a user's submissions                          ``/users/{name}``
+``/tournaments``              the tournaments: format, car, progress,       ``/tournaments``
+                              leader
+``/tournaments/{id}``         the final (highlighted, replay embedded),     ``/tournaments/{id}``
+                              standings (points per place), every heat
+                              with its replay link
 ``/compete``                  every command from nothing to a ranked entry
 ``/signin``, ``/signout``     sign in with an API token (owner-only logs)
 ============================  ============================================  =====================
@@ -47,7 +52,7 @@ from fastapi.routing import APIRoute
 from fastapi.templating import Jinja2Templates
 from markupsafe import Markup
 
-from leaderboard import auth, queries
+from leaderboard import auth, queries, tournaments
 from leaderboard.api.deps import IdPath, PageDep, SessionDep, SettingsDep
 from leaderboard.errors import NotFound
 from leaderboard.matchmaking import library_tracks, track_pool
@@ -312,6 +317,41 @@ def submission_page(
         context | _pager(races, f"/submissions/{submission_id}"),
         viewer,
     )
+
+
+@web_router.get("/tournaments", response_class=HTMLResponse)
+def tournaments_page(
+    request: Request, session: SessionDep, pages: PageDep, viewer: ViewerDep
+) -> HTMLResponse:
+    """Every tournament, newest first, with its progress and leader."""
+    page = tournaments.tournament_list(session, page=pages.page, per_page=pages.per_page)
+    context = {"nav": "tournaments", "items": page.items, "api_url": "/api/tournaments"}
+    return _render(request, "tournaments.html", context | _pager(page, "/tournaments"), viewer)
+
+
+@web_router.get("/tournaments/{tournament_id}", response_class=HTMLResponse)
+def tournament_page(
+    request: Request,
+    session: SessionDep,
+    settings: SettingsDep,
+    tournament_id: IdPath,
+    viewer: ViewerDep,
+) -> HTMLResponse:
+    """One tournament: the final as the highlight (its 3D replay embedded), the standings
+    and every heat with its replay link."""
+    detail = tournaments.tournament_detail(session, tournament_id)
+    # Embed the player only when the file is really there (as the race page does).
+    viser = detail.final.viser_url if detail.final is not None else None
+    final_replay = None
+    if viser is not None and (settings.replays_dir / Path(viser).name).is_file():
+        final_replay = viewer_url(viser)
+    context = {
+        "nav": "tournaments",
+        "t": detail,
+        "final_replay": final_replay,
+        "api_url": f"/api/tournaments/{tournament_id}",
+    }
+    return _render(request, "tournament.html", context, viewer)
 
 
 @lru_cache(maxsize=256)
