@@ -5,6 +5,9 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import os
+import subprocess
+import sys
 from pathlib import Path
 from types import ModuleType
 
@@ -106,3 +109,58 @@ def test_an_unexplained_survivor_below_the_goal_fails_the_report(
     assert report.main(["--root", str(tmp_path)]) == 1  # 5/6 = 83 % < 85 %
     out = capsys.readouterr().out
     assert "m.x_f__mutmut_5 (survived): UNEXPLAINED" in out and "83.3%" in out
+
+
+ORDER_TESTS = """
+import json, os
+
+def _log(name):
+    with open(os.environ["ORDER_LOG"], "a") as fh:
+        fh.write(name + "\\n")
+
+def test_slow():
+    _log("slow")
+
+def test_fast():
+    _log("fast")
+
+def test_unknown():
+    _log("unknown")
+
+def test_medium():
+    _log("medium")
+"""
+
+# Stands in for mutmut's state in the process it forks per mutant: the durations it measured.
+FAKE_MUTMUT = """
+import sys, types
+durations = {"test_order.py::test_slow": 9.0, "test_order.py::test_fast": 0.1,
+             "test_order.py::test_medium": 1.0}
+state_module = types.ModuleType("mutmut.state")
+state_module.state = lambda: types.SimpleNamespace(duration_by_test=durations)
+sys.modules["mutmut.state"] = state_module
+"""
+
+
+@pytest.mark.parametrize(
+    ("mutant", "order"),
+    [("mod.x_f__mutmut_1", ["fast", "medium", "slow", "unknown"]),
+     ("", ["slow", "fast", "unknown", "medium"]),  # not under mutmut: file order
+     ("stats", ["slow", "fast", "unknown", "medium"])],  # mutmut measuring: file order
+)  # fmt: skip
+def test_under_mutmut_the_fastest_tests_run_first(
+    tmp_path: Path, mutant: str, order: list[str]
+) -> None:
+    (tmp_path / "test_order.py").write_text(ORDER_TESTS)
+    (tmp_path / "fake_mutmut.py").write_text(FAKE_MUTMUT)
+    log = tmp_path / "order.log"
+    env = {k: v for k, v in os.environ.items() if k not in ("CI", "SLIPSTREAM_STRICT")}
+    env |= {"PYTHONPATH": f"{REPO}{os.pathsep}{tmp_path}", "ORDER_LOG": str(log),
+            "MUTANT_UNDER_TEST": mutant}  # fmt: skip
+    done = subprocess.run(
+        [sys.executable, "-m", "pytest", "-p", "fake_mutmut", "-p", "tests.conftest",
+         "-p", "no:cacheprovider", "-p", "no:xdist", "-q", "test_order.py"],
+        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120, check=False,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert log.read_text().split() == order
