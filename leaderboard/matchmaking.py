@@ -29,6 +29,7 @@ from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cache
+from typing import Protocol
 
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
@@ -72,6 +73,46 @@ class Candidate:
     def weight(self) -> float:
         """Seed weight: uncertain and under-played submissions first."""
         return (self.sigma / SIGMA0) ** 2 / (1 + self.races + 2 * self.queued)
+
+
+class _Driver(Protocol):
+    """What a race entry is made from (a :class:`Candidate`, a tournament entrant)."""
+
+    @property
+    def submission_id(self) -> int: ...
+    @property
+    def version_id(self) -> int | None: ...
+    @property
+    def name(self) -> str: ...
+    @property
+    def source(self) -> str: ...
+
+
+def grid_entries(cars: Sequence[_Driver]) -> list[RaceEntry]:
+    """A race's entries, car ``i`` = ``cars[i]`` (pole first)."""
+    return [
+        RaceEntry(
+            car=i,
+            submission_id=c.submission_id,
+            version_id=c.version_id,
+            name=c.name,
+            source=c.source,
+        )
+        for i, c in enumerate(cars)
+    ]
+
+
+def version_entry(session: Session, version: SubmissionVersion) -> RaceEntry:
+    """Car 0 of a race of one version (named ``<submission>:v<version>``)."""
+    sub = session.get(Submission, version.submission_id)
+    name = sub.name if sub is not None else f"submission-{version.submission_id}"
+    return RaceEntry(
+        car=0,
+        submission_id=version.submission_id,
+        version_id=version.id,
+        name=f"{name}:v{version.version}",
+        source=version.source,
+    )
 
 
 def waiting_validations(session: Session, user_id: int) -> int:
@@ -131,7 +172,6 @@ def schedule_validation(session: Session, settings: Settings, version: Submissio
     """
     car = assign_car(session, version)
     sub = session.get(Submission, version.submission_id)
-    name = sub.name if sub is not None else f"submission-{version.submission_id}"
     priority = validation_priority(session, sub.user_id if sub is not None else None)
     race = Race(
         kind="validation",
@@ -141,13 +181,7 @@ def schedule_validation(session: Session, settings: Settings, version: Submissio
         laps=1,
         penalties=False,
         entries=[
-            RaceEntry(
-                car=0,
-                submission_id=version.submission_id,
-                version_id=version.id,
-                name=f"{name}:v{version.version}",
-                source=version.source,
-            ),
+            version_entry(session, version),
             RaceEntry(
                 car=1,
                 name=settings.validation_opponent,
@@ -275,16 +309,7 @@ def schedule_ranked(
             seed=rng.randrange(2**31),
             laps=settings.race_laps,
             penalties=True,
-            entries=[
-                RaceEntry(
-                    car=i,
-                    submission_id=c.submission_id,
-                    version_id=c.version_id,
-                    name=c.name,
-                    source=c.source,
-                )
-                for i, c in enumerate(entrants)
-            ],
+            entries=grid_entries(entrants),
         )
         session.add(race)
         enqueue(session, race, priority=RANKED_PRIORITY, max_attempts=settings.max_attempts)

@@ -34,7 +34,7 @@ from collections.abc import Sequence
 from sqlalchemy import exists, select
 from sqlalchemy.orm import Session
 
-from leaderboard.matchmaking import track_pool
+from leaderboard.matchmaking import track_pool, version_entry
 from leaderboard.models import Race, RaceEntry, Submission, SubmissionVersion, utcnow
 from leaderboard.queue import enqueue
 from leaderboard.settings import Settings
@@ -85,8 +85,6 @@ def schedule_robustness(session: Session, settings: Settings, limit: int = 50) -
     tracks = track_pool(settings)
     races = []
     for version in versions:
-        sub = session.get(Submission, version.submission_id)
-        name = sub.name if sub is not None else f"submission-{version.submission_id}"
         race = Race(
             kind="robustness",
             track=robustness_track(version.id, tracks),
@@ -94,15 +92,7 @@ def schedule_robustness(session: Session, settings: Settings, limit: int = 50) -
             seed=ROBUSTNESS_SEED,
             laps=ROBUSTNESS_LAPS,
             penalties=False,
-            entries=[
-                RaceEntry(
-                    car=0,
-                    submission_id=version.submission_id,
-                    version_id=version.id,
-                    name=f"{name}:v{version.version}",
-                    source=version.source,
-                )
-            ],
+            entries=[version_entry(session, version)],
         )
         session.add(race)
         enqueue(session, race, priority=ROBUSTNESS_PRIORITY, max_attempts=settings.max_attempts)

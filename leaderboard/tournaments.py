@@ -52,7 +52,7 @@ from sqlalchemy.orm import Session
 
 from leaderboard import queries
 from leaderboard.errors import Conflict, LeaderboardError, NotFound
-from leaderboard.matchmaking import RANKED_PRIORITY, library_tracks, track_pool
+from leaderboard.matchmaking import RANKED_PRIORITY, grid_entries, library_tracks, track_pool
 from leaderboard.models import (
     DEFAULT_CAR,
     Job,
@@ -304,16 +304,7 @@ def _add_race(
         seed=seed,
         laps=tournament.laps,
         penalties=True,  # the ranked races' rules: DeepRacer's time penalties
-        entries=[
-            RaceEntry(
-                car=i,
-                submission_id=e.submission_id,
-                version_id=e.version_id,
-                name=e.name,
-                source=e.source,
-            )
-            for i, e in enumerate(cars)
-        ],
+        entries=grid_entries(cars),
     )
     session.add(race)
     return race
