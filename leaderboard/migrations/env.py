@@ -28,7 +28,15 @@ def run_migrations_offline() -> None:
 
 
 def run_migrations_online() -> None:
-    """Migrate through a connection of the configured engine."""
+    """Migrate through a connection of the configured engine.
+
+    On SQLite, foreign keys are off while the migrations run and checked afterwards: a batch
+    migration copies a table, drops the old one and renames the copy, and with foreign keys
+    on, that ``DROP TABLE`` deletes every row first — failing on rows still referenced
+    (``submissions.active_version_id``), or running the referencing tables' ``ON DELETE``
+    actions (nulling or deleting their rows) before failing, a scan per row on large tables
+    (Alembic's documented recipe for SQLite batch mode).
+    """
     engine = context.config.attributes.get("engine")
     url = context.config.get_main_option("sqlalchemy.url") or ""
     owned = engine is None
@@ -36,14 +44,28 @@ def run_migrations_online() -> None:
         engine = make_engine(url)
     try:
         with engine.connect() as connection:
-            context.configure(
-                connection=connection,
-                target_metadata=target_metadata,
-                render_as_batch=connection.dialect.name == "sqlite",  # SQLite cannot ALTER much
-                compare_type=True,
-            )
-            with context.begin_transaction():
-                context.run_migrations()
+            sqlite = connection.dialect.name == "sqlite"
+            if sqlite:  # a no-op inside a transaction: set before the migrations' one
+                connection.exec_driver_sql("PRAGMA foreign_keys=OFF")
+                connection.commit()
+            try:
+                context.configure(
+                    connection=connection,
+                    target_metadata=target_metadata,
+                    render_as_batch=sqlite,  # SQLite cannot ALTER much
+                    compare_type=True,
+                )
+                with context.begin_transaction():
+                    context.run_migrations()
+                    if sqlite:
+                        broken = connection.exec_driver_sql("PRAGMA foreign_key_check").fetchall()
+                        if broken:  # roll the migration back rather than keep broken references
+                            raise RuntimeError(f"migration broke foreign keys: {broken[:5]}")
+            finally:
+                if sqlite:
+                    connection.rollback()  # nothing is pending here; PRAGMA needs no transaction
+                    connection.exec_driver_sql("PRAGMA foreign_keys=ON")
+                    connection.commit()
     finally:
         if owned:
             engine.dispose()

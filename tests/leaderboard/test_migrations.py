@@ -71,3 +71,40 @@ def test_sqlite_runs_in_wal_mode(tmp_path: Path) -> None:
         assert conn.exec_driver_sql("PRAGMA journal_mode").scalar() == "wal"
         assert conn.exec_driver_sql("PRAGMA foreign_keys").scalar() == 1
     engine.dispose()
+
+
+def test_migrations_keep_the_rows_and_their_references_on_sqlite(tmp_path: Path) -> None:
+    """SQLite batch migrations (copy, drop, rename) on a database with data: with foreign keys
+    on, dropping ``submission_versions`` failed (``submissions.active_version_id`` points at it)
+    or nulled the references of ``race_entries`` and ``track_records`` first. Down to 0003
+    and up again keeps every row and every reference."""
+    from sqlalchemy import text
+    from sqlalchemy.orm import Session
+
+    from leaderboard.settings import Settings
+    from tests.leaderboard import factories
+
+    url = f"sqlite:///{tmp_path / 'lb.db'}"
+    settings = Settings(data_dir=tmp_path / "data", database_url=url, tracks=["oval"])
+    engine = make_engine(url)
+    snapshot = {
+        "submissions": "SELECT id, status, active_version_id FROM submissions ORDER BY id",
+        "entries": "SELECT id, race_id, submission_id, version_id FROM race_entries ORDER BY id",
+        "records": "SELECT id, submission_id, version_id, race_id FROM track_records ORDER BY id",
+        "jobs": "SELECT id, race_id, status FROM jobs ORDER BY id",
+    }
+    try:
+        upgrade(url, engine=engine)
+        with Session(engine) as session:
+            factories.seed(session, settings, n_submissions=3, n_races=3)
+        with engine.connect() as conn:
+            before = {k: conn.execute(text(q)).all() for k, q in snapshot.items()}
+        assert before["records"] and any(v for _, _, _, v in before["entries"])
+        downgrade(url, "0003", engine=engine)
+        upgrade(url, engine=engine)
+        with engine.connect() as conn:
+            after = {k: conn.execute(text(q)).all() for k, q in snapshot.items()}
+            assert conn.exec_driver_sql("PRAGMA foreign_keys").scalar() == 1  # back on
+        assert after == before
+    finally:
+        engine.dispose()
