@@ -52,7 +52,7 @@ from fastapi.routing import APIRoute
 from sqlalchemy import Engine, func, insert, select
 from sqlalchemy.orm import Session
 
-from leaderboard import auth, localpg
+from leaderboard import auth, localpg, tournaments
 from leaderboard.db import make_engine
 from leaderboard.migrations import upgrade
 from leaderboard.models import (
@@ -66,6 +66,7 @@ from leaderboard.models import (
     User,
 )
 from leaderboard.ratings import ordinal
+from leaderboard.settings import Settings
 
 TRACKS = ["oval", "bean", "chicanes", "hairpins", "monza", "speedway", "spielberg", "technical"]
 CHUNK = 20_000
@@ -236,6 +237,17 @@ def add_validation_races(engine: Engine, n_races: int, n_subs: int, seed: int = 
     _bulk(engine, RaceEntry, entries)
 
 
+def add_tournaments(engine: Engine, n: int = 3) -> None:
+    """A few round-robin tournaments of the ladder's top 16 (heats planned, not raced)."""
+    with Session(engine) as session:
+        settings = Settings(data_dir=Path(tempfile.gettempdir()), tracks=TRACKS)
+        for i in range(n):
+            tournaments.create_tournament(
+                session, settings, name=f"cup {i}", top=16, tracks=TRACKS[:2], seeds=(0, 1)
+            )
+        session.commit()
+
+
 def add_user(engine: Engine, name: str = "loadtester") -> str:
     """A user with an API token (for the authenticated endpoints); the token."""
     with Session(engine) as session:
@@ -274,16 +286,16 @@ async def _load(
 ) -> Figures:
     latencies: list[float] = []
     errors = 0
-    stop_at = time.perf_counter() + seconds
     rng = random.Random(1)
     limits = httpx.Limits(max_connections=concurrency, max_keepalive_connections=concurrency)
     async with httpx.AsyncClient(
         base_url=base, limits=limits, timeout=30, headers=headers
     ) as client:
+        stop_at = time.perf_counter() + seconds
 
         async def one() -> None:
             nonlocal errors
-            while time.perf_counter() < stop_at:
+            while not latencies or time.perf_counter() < stop_at:
                 path = rng.choice(paths)
                 start = time.perf_counter()
                 try:
@@ -310,14 +322,11 @@ async def _load(
 
 def get_routes() -> set[str]:
     """Every GET route of the app: API operations and pages (path templates)."""
-    import tempfile as _tempfile  # a throwaway app, only to list its routes
-
-    from leaderboard.app import create_app
-    from leaderboard.settings import Settings
+    from leaderboard.app import create_app  # a throwaway app, only to list its routes
     from leaderboard.web.pages import web_router
     from leaderboard.web.session import session_router
 
-    with _tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory() as tmp:
         app = create_app(Settings(data_dir=Path(tmp)))
         api = {path for path, ops in app.openapi()["paths"].items() if "get" in ops}
     pages = {
@@ -365,6 +374,10 @@ def endpoint_groups(n_subs: int, n_races: int, token: str) -> list[tuple[str, li
         ("/api/users/{name}", [f"/api/users/{u}" for u in users], False),
         ("/api/users/me", ["/api/users/me"], True),
         ("/api/tokens", ["/api/tokens"], True),
+        ("/tournaments", ["/tournaments"], False),
+        ("/api/tournaments", ["/api/tournaments"], False),
+        ("/tournaments/{tournament_id}", ["/tournaments/1", "/tournaments/2"], False),
+        ("/api/tournaments/{tournament_id}", ["/api/tournaments/1", "/api/tournaments/2"], False),
         ("/api/health", ["/api/health"], False),
         ("/api/jobs", ["/api/jobs"], False),
         ("/compete", ["/compete"], False),
@@ -425,6 +438,7 @@ def main(argv: list[str] | None = None) -> int:
             start = time.perf_counter()
             fill_s = fill(engine, args.submissions, args.races)
             add_validation_races(engine, VALIDATION_RACES, args.submissions)
+            add_tournaments(engine)
             fill_s["total"] = round(time.perf_counter() - start, 2)
             print(f"filled in {fill_s['total']} s: {fill_s}", file=sys.stderr)
         token = add_user(engine, f"loadtester{int(time.time())}")
@@ -454,6 +468,11 @@ def main(argv: list[str] | None = None) -> int:
                 figures.single_p50_ms = single.p50_ms
                 figures.errors += single.errors
                 results.append(figures)
+                print(
+                    f"{label}: 1 client p50 {single.p50_ms} ms; {args.concurrency} clients "
+                    f"p50 {figures.p50_ms} ms, p99 {figures.p99_ms} ms, {figures.errors} errors",
+                    file=sys.stderr,
+                )
         finally:
             os.killpg(server.pid, signal.SIGTERM)
             server.wait(timeout=30)
