@@ -319,21 +319,10 @@ class Simulator:
         (the rest are silently dropped, and ``rgbaColors`` beyond that crashes it), so the
         boxes go into one compound body per run of that many consecutive wall segments.
         """
-        half_extents, positions, orientations = [], [], []
-        for wall, side in ((self.wall_lines.left, 1.0), (self.wall_lines.right, -1.0)):
-            nxt = np.roll(wall, -1, axis=0)
-            delta = nxt - wall
-            seg_len = np.linalg.norm(delta, axis=1)
-            yaw = np.arctan2(delta[:, 1], delta[:, 0])
-            outward = side * np.stack([-np.sin(yaw), np.cos(yaw)], axis=1)
-            centre = 0.5 * (wall + nxt) + outward * (WALL_THICKNESS / 2)
-            for m, length, angle in zip(centre, seg_len, yaw, strict=True):
-                # Overlap neighbours a little so that no gap opens on the outside of a bend.
-                half_extents.append(
-                    [length / 2 + WALL_THICKNESS / 2, WALL_THICKNESS / 2, WALL_HEIGHT / 2]
-                )
-                positions.append([float(m[0]), float(m[1]), WALL_HEIGHT / 2])
-                orientations.append(pb.getQuaternionFromEuler([0.0, 0.0, float(angle)]))
+        centres, halves, yaws = self.wall_lines.boxes(WALL_THICKNESS, self.track)
+        half_extents = [[float(a), float(b), WALL_HEIGHT / 2] for a, b in halves]
+        positions = [[float(x), float(y), WALL_HEIGHT / 2] for x, y in centres]
+        orientations = [pb.getQuaternionFromEuler([0.0, 0.0, float(a)]) for a in yaws]
         if self.visuals:
             self._build_road_visual()
         bodies = []

@@ -39,6 +39,10 @@ def wall_offsets(track: Track, runoff: float) -> tuple[FloatArray, FloatArray]:
     return per_track[runoff]
 
 
+TURN_EPS = 1e-9  # m²: a cross product of two wall segments below this is a straight run
+MIN_THICKNESS = 0.025  # m: thinnest wall box (thinner ones let a fast car tunnel through)
+THINNING_STEPS = 4  # halvings of a wall box that would reach the road (0.2 m -> 0.025 m)
+BOX_TOLERANCE = -0.03  # m: a box may touch the road's edge by this much (round-off)
 WALL_SPACING = 0.5  # m between wall polyline points (chord error < 2 cm at 1.5 m radius)
 
 
@@ -51,11 +55,15 @@ class Walls:
         right: (W, 2) m, closed polyline on the right.
         stride: centre-line points per wall point: wall point ``k`` sits beside centre point
             ``k * stride``, so a car's centre-line segment index locates nearby walls.
+        left_out, right_out: (W, 2) unit vectors from each wall point away from the road (the
+            centre line's normal it was placed along).
     """
 
     left: FloatArray
     right: FloatArray
     stride: int
+    left_out: FloatArray
+    right_out: FloatArray
 
     @classmethod
     def around(cls, track: Track, runoff: float = DEFAULT_RUNOFF) -> Walls:
@@ -70,7 +78,7 @@ class Walls:
         to_left, to_right = wall_offsets(track, runoff)
         left = c + to_left[idx, None] * n
         right = c - to_right[idx, None] * n
-        return cls(left=left, right=right, stride=stride)
+        return cls(left=left, right=right, stride=stride, left_out=n, right_out=-n)
 
     @property
     def n_points(self) -> int:
@@ -87,3 +95,94 @@ class Walls:
         starts = np.vstack([self.left, self.right])
         ends = np.vstack([np.roll(self.left, -1, axis=0), np.roll(self.right, -1, axis=0)])
         return starts, ends
+
+    def boxes(
+        self, thickness: float, track: Track | None = None
+    ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Boxes up to ``thickness`` m thick whose inner faces are the wall segments.
+
+        Each box lies on the far side of its segment from the road (the side its two wall
+        points were pushed out to), so its face towards the road is the wall line itself.
+        Each box reaches ``thickness / 2`` past its segment's ends so no gap opens behind a
+        vertex, except at a vertex where the wall turns towards the road: there it stops at
+        the vertex (reaching past it would push a box corner onto the road). With ``track``,
+        a box whose far side would reach the road (the inside of a hairpin tighter than the
+        run-off, where the road wraps round the bend's centre: 0.3 m onto the road on the
+        real F1TENTH tracks) is made thinner, down to ``MIN_THICKNESS``.
+
+        Returns:
+            centres (2W, 2) m, half-extents (2W, 2) m along and across the segment, yaws
+            (2W,) rad of the segments; left wall first.
+        """
+        starts, ends = self.segments()
+        delta = ends - starts
+        length = np.linalg.norm(delta, axis=1)
+        yaw = np.arctan2(delta[:, 1], delta[:, 0])
+        unit = np.stack([np.cos(yaw), np.sin(yaw)], axis=1)
+        out = np.vstack([self.left_out, self.right_out])
+        w = self.n_points
+        nxt_of = np.concatenate([np.roll(np.arange(w), -1), w + np.roll(np.arange(w), -1)])
+        prv_of = np.concatenate([np.roll(np.arange(w), 1), w + np.roll(np.arange(w), 1)])
+        normal = np.stack([-unit[:, 1], unit[:, 0]], axis=1)
+        away = out + out[nxt_of]  # the road is on the other side of the segment
+        flip = np.where(np.einsum("ij,ij->i", normal, away) >= 0.0, 1.0, -1.0)
+        normal = normal * flip[:, None]
+        # Negative turn at a vertex: the wall bends towards the road there.
+        turn_end = _cross(delta, delta[nxt_of]) * flip
+        turn_start = _cross(delta[prv_of], delta) * flip
+        thick = np.full(len(length), thickness)
+        if track is not None:
+            for k in range(THINNING_STEPS):
+                reach = self._box_points(starts, unit, normal, length, thick, turn_start, turn_end)
+                bad = track.on_road(reach.reshape(-1, 2), BOX_TOLERANCE).reshape(len(thick), -1)
+                hit = bad.any(axis=1)
+                if not hit.any() or k == THINNING_STEPS - 1:
+                    break
+                thick = np.where(hit, np.maximum(0.5 * thick, MIN_THICKNESS), thick)
+        ext_start = np.where(turn_start < -TURN_EPS, 0.0, 0.5 * thick)
+        ext_end = np.where(turn_end < -TURN_EPS, 0.0, 0.5 * thick)
+        centres = (
+            starts
+            + (0.5 * (length + ext_end - ext_start))[:, None] * unit
+            + (0.5 * thick)[:, None] * normal
+        )
+        halves = np.stack([0.5 * (length + ext_start + ext_end), 0.5 * thick], axis=1)
+        return centres, halves, yaw
+
+    @staticmethod
+    def _box_points(
+        starts: FloatArray,
+        unit: FloatArray,
+        normal: FloatArray,
+        length: FloatArray,
+        thick: FloatArray,
+        turn_start: FloatArray,
+        turn_end: FloatArray,
+    ) -> FloatArray:
+        """(S, 18, 2) points on the far and end faces of each box (for the road check)."""
+        ext_start = np.where(turn_start < -TURN_EPS, 0.0, 0.5 * thick)
+        ext_end = np.where(turn_end < -TURN_EPS, 0.0, 0.5 * thick)
+        a = np.linspace(0.0, 1.0, 9)[None, :]
+        along = -ext_start[:, None] + a * (length + ext_start + ext_end)[:, None]  # (S, 9)
+        far = (
+            starts[:, None, :]
+            + along[..., None] * unit[:, None, :]
+            + thick[:, None, None] * normal[:, None, :]
+        )
+        across = a * thick[:, None]  # the two end faces
+        first = (
+            starts[:, None, :]
+            - ext_start[:, None, None] * unit[:, None, :]
+            + across[..., None] * normal[:, None, :]
+        )
+        last = (
+            starts[:, None, :]
+            + (length + ext_end)[:, None, None] * unit[:, None, :]
+            + across[..., None] * normal[:, None, :]
+        )
+        return np.concatenate([far, first[:, :4], last[:, :5]], axis=1)
+
+
+def _cross(a: FloatArray, b: FloatArray) -> FloatArray:
+    """z of the 2D cross product of (..., 2) vectors."""
+    return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from arena.batch.maps import TrackMaps
+from arena.sim import WALL_THICKNESS
 from arena.walls import DEFAULT_RUNOFF, Walls
 from tests.tracks.builders import hairpin_points
 from tests.tracks.test_real_files import write_f1tenth_centreline
@@ -77,3 +78,71 @@ def test_builtin_tracks_keep_the_full_run_off() -> None:
         idx = np.arange(0, track.n_points, walls.stride)
         d_left = np.linalg.norm(walls.left - track.centre[idx], axis=1)
         np.testing.assert_allclose(d_left, track.width_left[idx] + DEFAULT_RUNOFF, atol=1e-9)
+
+
+def _box_intrusion(track: Track) -> float:
+    """How far (m) the deepest point of a pybullet wall box lies on the road (0: none)."""
+    walls = Walls.around(track)
+    centres, halves, yaws = walls.boxes(WALL_THICKNESS, track)
+    g = np.linspace(-1.0, 1.0, 9)
+    a, b = np.meshgrid(g, g)
+    local = np.stack([a.ravel(), b.ravel()], axis=1)  # (81, 2) over the box
+    u = np.stack([np.cos(yaws), np.sin(yaws)], axis=1)
+    v = np.stack([-u[:, 1], u[:, 0]], axis=1)
+    pts = (
+        centres[:, None, :]
+        + (local[None, :, 0] * halves[:, 0, None])[..., None] * u[:, None, :]
+        + (local[None, :, 1] * halves[:, 1, None])[..., None] * v[:, None, :]
+    ).reshape(-1, 2)
+    on = track.on_road(pts, margin=-0.005)
+    if not on.any():
+        return 0.0
+    proj = track.project(pts[on])
+    seg = proj.segment % track.n_points
+    width = np.where(proj.d > 0, track.width_left[seg], track.width_right[seg])
+    return float((width - np.abs(proj.d)).max())
+
+
+@pytest.mark.parametrize(
+    "make",
+    [
+        # The F1TENTH shape: 1.1 m half-width narrowed around a 0.6 m hairpin.
+        pytest.param("hairpin", id="f1tenth-hairpin-0.6"),
+        # Real-track-like generated circuits (0.5-0.6 m hairpins entered from straights).
+        pytest.param("random:2:length=200,difficulty=0.8,hairpin=0.6", id="generated-0.6"),
+        pytest.param("random:4:length=200,difficulty=0.8,hairpin=0.5", id="generated-0.5"),
+    ],
+)
+def test_wall_boxes_stay_off_the_road_inside_tight_hairpins(make: str, hairpin: Track) -> None:
+    """Inside a hairpin tighter than the run-off the road wraps round the bend's centre, so a
+    0.2 m box behind the inner wall came out on the road on the bend's far side: 0.26-0.29 m
+    onto the road on every published F1TENTH layout tried (Spielberg, Monza, Austin, Catalunya,
+    Silverstone), where pybullet cars then crashed into it while batch cars drove on."""
+    track = hairpin if make == "hairpin" else load_track(make)
+    assert _box_intrusion(track) < 0.08
+
+
+def test_builtin_wall_boxes_keep_their_full_thickness_off_the_road() -> None:
+    for name in list_tracks():
+        track = load_track(name)
+        _, halves, _ = Walls.around(track).boxes(WALL_THICKNESS, track)
+        np.testing.assert_allclose(halves[:, 1], WALL_THICKNESS / 2)
+        assert _box_intrusion(track) == 0.0
+
+
+@pytest.mark.slow
+def test_pursuit_drives_through_real_track_hairpins_on_pybullet() -> None:
+    """random:0 with 0.6 m hairpins: pursuit got stuck on a wall box inside the first one."""
+    from agents.baselines import make_baseline
+    from arena.env import RacingEnv
+    from arena.race import run_race
+
+    env = RacingEnv(track="random:0:length=200,difficulty=0.8,hairpin=0.6", n_cars=1)
+    result, _ = run_race(
+        [make_baseline("pursuit", env.layout, env.params)],
+        track=env.base_track,
+        laps=1,
+        record=False,
+    )
+    env.close()
+    assert result.cars[0].status == "finished", result.cars[0].dnf_reason
