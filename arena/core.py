@@ -291,11 +291,12 @@ def episode_step(
     before = rules.delta_s(ops, gate, st.s)
     crossed = (ds > 0) & (ds <= rules.max_jump) & (before > 0) & (before <= ds) & active
     finish_line = crossed & (st.next_gate == 0)
-    lap_done = finish_line & (st.laps >= 0)
+    started = st.laps >= 0  # laps is -1 until the first crossing of the line, then counts
+    lap_done = finish_line & started
+    first_cross = finish_line & ~started
     laps = where(finish_line, st.laps + 1, st.laps)
     next_gate = where(crossed, st.next_gate + 1, st.next_gate)
     next_gate = where(next_gate >= rules.gate_s.shape[0], 0, next_gate)
-    first_cross = (st.laps < 0) & (laps == 0)
     line_time = where(first_cross & ~st.grid_start[:, None], now_n, st.line_time)
     lap_time = where(lap_done, now_n - line_time, 0.0)
     line_time = where(lap_done, now_n, line_time)
@@ -307,7 +308,7 @@ def episode_step(
     wheel_d = sensed.d[..., None] + rules.wheel_x * sin_h + rules.wheel_y * cos_h
     on = (wheel_d <= sensed.left[..., None]) & (wheel_d >= -sensed.right[..., None])
     off_track = ~ops.any(on, axis=-1) & active
-    all_wheels_on = ~ops.any(~on, axis=-1)
+    all_wheels_on = ops.all(on, axis=-1)
     off_time = where(off_track, st.off_time + rules.dt, 0.0)
 
     contact = sensed.touching & active[..., :, None] & active[..., None, :]
@@ -350,12 +351,13 @@ def episode_step(
         still & (sensed.upright < FLIP_UPRIGHT) if sensed.upright is not None else still & False
     )
     terminated = newly_finished | stuck | lost | flipped
-    crashed = still & False
+    reason = where(stuck, STUCK, 0)
     if rules.end_on_crash:  # static configuration
         crashed = still & (sensed.wall | ops.any(contact, axis=-1))
         terminated = terminated | crashed
+        reason = where(crashed, CRASHED, reason)
     truncated = active & ~terminated & (steps >= rules.max_cycles)[:, None]
-    reason = where(lost, OFF_TRACK, where(crashed, CRASHED, where(stuck, STUCK, 0)))
+    reason = where(lost, OFF_TRACK, reason)
     dnf = where(flipped, FLIPPED, reason) + where(truncated, TIME_LIMIT, 0)
 
     wall = sensed.wall & active

@@ -423,6 +423,9 @@ class RaceEpisodeEnv(ParallelEnv):
             return np.where(active, steer, 0.0), np.where(active, throttle, 0.0)
         cmd = np.zeros((n, 2))
         for agent, act in actions.items():
+            if type(act) is np.ndarray and act.shape == (2,):  # the usual case: as it is
+                cmd[self.agent_index[agent]] = act
+                continue
             a = np.asarray(act, dtype=np.float64).reshape(-1)
             if a.shape != (2,):
                 raise SimError(f"action for {agent} must have shape (2,), got {a.shape}")

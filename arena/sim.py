@@ -229,6 +229,10 @@ class Simulator:
         runoff: metres between the road edge and the walls.
         visuals: also build visual shapes (road, walls, coloured cars) for :meth:`camera`;
             costs nothing per step, a little at reset.
+
+    Move the cars through these methods (:meth:`reset`, :meth:`step`, :meth:`park`): a step
+    starts from the state the previous one read. After changing a body with pybullet
+    directly, call :meth:`sync`.
     """
 
     def __init__(
@@ -262,6 +266,8 @@ class Simulator:
         self.scales = CarScales.nominal(n_cars)
         self.steering = np.zeros(n_cars)
         self.substeps_done = 0
+        # The cars' state as last read (see _read), while no body has moved since.
+        self._last_read: list[tuple[float, ...]] | None = None
         # Per car: (steering rad, cos and sin of the left and right front-wheel angles).
         self._wheel_angles: list[tuple[float, ...]] = [(0.0, 1.0, 0.0, 1.0, 0.0)] * n_cars
         self._build_world()
@@ -269,6 +275,7 @@ class Simulator:
     # ---- world construction ---------------------------------------------------------------
 
     def _build_world(self) -> None:
+        self._last_read = None  # new bodies
         c = self.client
         pb.resetSimulation(physicsClientId=c)
         pb.setGravity(0, 0, -GRAVITY, physicsClientId=c)
@@ -422,6 +429,7 @@ class Simulator:
             if np.shape(getattr(scales, name)) != (self.n_cars,):
                 raise SimError(f"CarScales.{name} must have shape ({self.n_cars},)")
         if not np.array_equal(scales.mass, self.scales.mass):
+            self._last_read = None
             for body, m in zip(self.cars, scales.mass, strict=True):
                 self._set_mass(body, float(self.params.mass * m))
         self.scales = scales
@@ -478,6 +486,7 @@ class Simulator:
             pos, quat = get_pose(body, c)
             lin, ang = get_vel(body, c)
             rows.append(pos + quat + lin + ang)
+        self._last_read = rows
         # One array from flat tuples is much cheaper than several, or filling rows one by one.
         table = np.array(rows, dtype=np.float64)  # (n, 13)
         return table[:, 0:3].copy(), table[:, 3:7], table[:, 7:13]
@@ -529,12 +538,15 @@ class Simulator:
         # The servo in Python floats: the numbers numpy's clip gives, without its overhead.
         steering = self.steering.tolist()
         step, client = pb.stepSimulation, self.client
+        # The first substep starts from the state the last step (or reset) read.
+        rows, self._last_read = self._last_read, None
         for _ in range(self.substeps):
             steering = [
                 now + min(max(goal - now, low), max_delta)
                 for now, goal in zip(steering, target, strict=True)
             ]
-            self._apply_tyre_forces(steering, tyres)
+            self._apply_tyre_forces(steering, tyres, rows)
+            rows = None
             step(client)
             self.substeps_done += 1
             self._collect_contacts(wall, touching)
@@ -560,7 +572,12 @@ class Simulator:
             out.append((body, throttle, motor, mass, -gain * (0.25 * mass), limit))
         return out
 
-    def _apply_tyre_forces(self, steering: list[float], tyres: list[tuple[Any, ...]]) -> None:
+    def _apply_tyre_forces(
+        self,
+        steering: list[float],
+        tyres: list[tuple[Any, ...]],
+        rows: list[tuple[float, ...]] | None = None,
+    ) -> None:
         """Compute and apply each car's tyre forces for one substep.
 
         Scalar math per car, inside the loop that already calls pybullet per car: for up to
@@ -572,6 +589,8 @@ class Simulator:
         Args:
             steering: (n,) road-wheel angles, rad, this substep.
             tyres: per car, from :meth:`_tyre_constants`.
+            rows: per car, the state as :meth:`_read` read it (position, quaternion, linear
+                and angular velocity), if nothing moved the bodies since; None: query it.
         """
         p, c = self.params, self.client
         wheelbase, half = p.wheelbase, 0.5 * p.track_width
@@ -581,8 +600,12 @@ class Simulator:
         cos, sin, hypot, atan2 = math.cos, math.sin, math.hypot, math.atan2
         wheels = self._wheel_angles
         for i, (body, throttle, motor, mass, k_lat, limit) in enumerate(tyres):
-            pos, (qx, qy, qz, qw) = get_pose(body, c)
-            (vxw, vyw, _), (_, _, r) = get_vel(body, c)
+            if rows is None:
+                pos, (qx, qy, qz, qw) = get_pose(body, c)
+                (vxw, vyw, _), (_, _, r) = get_vel(body, c)
+            else:
+                row = rows[i]
+                pos, (qx, qy, qz, qw), vxw, vyw, r = row[0:3], row[3:7], row[7], row[8], row[12]
             yaw = atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
             cy, sy = cos(yaw), sin(yaw)
             vx = cy * vxw + sy * vyw
@@ -643,8 +666,19 @@ class Simulator:
         """Simulated seconds since reset (counted in substeps, so no rounding drift)."""
         return self.substeps_done / self.physics_hz
 
+    def sync(self) -> None:
+        """Forget the cars' state read at the end of the last step.
+
+        :meth:`step` starts from that state instead of querying pybullet again (each query
+        copies pybullet's whole state record, about 30 KB: a quarter of the queries a step
+        made). Call this after changing a car's body with pybullet directly (a test giving
+        a car a velocity); the simulator's own methods keep it right by themselves.
+        """
+        self._last_read = None
+
     def park(self, i: int) -> None:
         """Take car ``i`` out of the race: moved far off the track and stopped."""
+        self._last_read = None
         pb.resetBasePositionAndOrientation(
             self.cars[i],
             [PARKING_X + 5.0 * i, PARKING_X, self.params.height / 2],

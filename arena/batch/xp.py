@@ -157,6 +157,10 @@ class NumpyOps:
         """Logical or over ``axis``."""
         return x.any(axis=axis)
 
+    def all(self, x: Array, axis: int) -> Array:
+        """Logical and over ``axis``."""
+        return x.all(axis=axis)
+
     def amin(self, x: Array, axis: int) -> Array:
         """Minimum over ``axis``."""
         return np.amin(x, axis=axis)
@@ -356,6 +360,10 @@ class TorchOps(NumpyOps):
     def any(self, x: Array, axis: int) -> Array:
         """Logical or over ``axis``."""
         return self.torch.any(x, dim=axis)
+
+    def all(self, x: Array, axis: int) -> Array:
+        """Logical and over ``axis``."""
+        return self.torch.all(x, dim=axis)
 
     def amin(self, x: Array, axis: int) -> Array:
         """Minimum over ``axis``."""

@@ -107,6 +107,7 @@ def test_rear_end_impact_follows_bullet_within_bound() -> None:
     try:
         sim.reset(poses)
         pb.resetBaseVelocity(sim.cars[1], [4.0, 0, 0], [0, 0, 0], physicsClientId=sim.client)
+        sim.sync()  # the body changed behind the simulator's back
         reference = [sim.step(np.zeros(2), np.array([0.0, 0.5])) for _ in range(TWO_SECONDS)]
     finally:
         sim.close()
