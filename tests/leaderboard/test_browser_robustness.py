@@ -44,6 +44,7 @@ def _names(page: Any) -> list[str]:
 
 def test_the_robust_column_and_ordering_show(browser: Any, base_url: str) -> None:  # noqa: F811
     page = browser.new_page(viewport={"width": 1280, "height": 800})
+    page.set_default_timeout(TIMEOUT_MS)  # software WebGL on a loaded machine is slow
     try:
         page.goto(base_url + "/", timeout=TIMEOUT_MS)
         by_rating = _api(base_url + "/api/leaderboard")
@@ -52,7 +53,7 @@ def test_the_robust_column_and_ordering_show(browser: Any, base_url: str) -> Non
         assert "robust" in headers
         cells = page.locator("table#leaderboard tbody td.robust").all_inner_texts()
         assert cells == [f"{r['robust_score']:.2f}" for r in by_rating]
-        _shot(page, "leaderboard_robust_column", full_page=True)
+        _shot(page, "leaderboard_robust_column", full_page=True, timeout=TIMEOUT_MS)
 
         page.locator("a#order-robust").click()
         page.wait_for_url("**/?order=robust", timeout=TIMEOUT_MS)
@@ -62,7 +63,7 @@ def test_the_robust_column_and_ordering_show(browser: Any, base_url: str) -> Non
         assert [r["name"] for r in by_robust] != [r["name"] for r in by_rating]  # a new view
         assert _names(page) == [r["name"] for r in by_robust]
         assert page.locator("#order strong").inner_text() == "robustness"
-        _shot(page, "leaderboard_robust", full_page=True)
+        _shot(page, "leaderboard_robust", full_page=True, timeout=TIMEOUT_MS)
 
         top = by_robust[0]
         page.locator("table#leaderboard tbody td.robust a").first.click()
@@ -70,6 +71,6 @@ def test_the_robust_column_and_ordering_show(browser: Any, base_url: str) -> Non
         grid = page.locator("table#robust-grid tbody tr")
         assert grid.count() == 9  # the nominal lap and the 8 grid corners
         assert page.locator("#robust-score").inner_text() == f"{top['robust_score']:.2f} m/s"
-        _shot(page, "leaderboard_robust_submission", full_page=True)
+        _shot(page, "leaderboard_robust_submission", full_page=True, timeout=TIMEOUT_MS)
     finally:
         page.close()

@@ -79,6 +79,7 @@ def test_the_tournament_page_shows_standings_heats_and_the_final(
         doc = json.load(response)
     assert doc["status"] == "finished" and doc["final"] is not None
     page = browser.new_page(viewport={"width": 1280, "height": 900})
+    page.set_default_timeout(TIMEOUT_MS)  # software WebGL on a loaded machine is slow
     errors: list[str] = []
     page.on("pageerror", lambda err: "'unsafe-eval'" in str(err) or errors.append(str(err)))
     try:
@@ -99,7 +100,7 @@ def test_the_tournament_page_shows_standings_heats_and_the_final(
         assert src is not None and f"/replays/{doc['final']['race_id']}.viser" in src
         frame = page.frame_locator("iframe#final-replay")
         frame.locator("canvas").first.wait_for(timeout=TIMEOUT_MS)
-        _shot(page, "tournament", full_page=True)
+        _shot(page, "tournament", full_page=True, timeout=TIMEOUT_MS)
         page.locator("table#heats a.replay-link").last.click()
         page.wait_for_url(f"**/races/{doc['final']['race_id']}#replay", timeout=TIMEOUT_MS)
         assert page.locator("iframe#replay").count() == 1
