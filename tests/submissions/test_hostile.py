@@ -21,6 +21,7 @@ import textwrap
 import threading
 from collections.abc import Callable, Iterator
 from dataclasses import replace
+from multiprocessing import shared_memory
 from pathlib import Path
 
 import pytest
@@ -265,12 +266,18 @@ def test_host_files_are_invisible(
     key, secret = home_secret
     database = tmp_path / "leaderboard.db"
     database.write_text("SQLite format 3 FAKE-DATABASE\n")
+    # A named shared-memory object of the runner, world-readable: what multiprocessing's
+    # shared_memory and Ray's object store leave in /dev/shm (only the sandbox protects it).
+    segment = shared_memory.SharedMemory(create=True, size=4096)
+    segment.buf[: len(secret)] = secret.encode()
+    os.chmod(f"/dev/shm/{segment.name.lstrip('/')}", 0o644)
     targets = [
         str(key),
         str(database),
         "/etc/shadow",
         "/proc/1/environ",
         str(Path.cwd() / "pyproject.toml"),
+        f"/dev/shm/{segment.name.lstrip('/')}",
     ]
     body = f"""
     class Policy(Driver):
@@ -283,16 +290,20 @@ def test_host_files_are_invisible(
                     continue
                 if content:  # an empty file (the sandbox's own init's environ) leaks nothing
                     raise RuntimeError("LEAKED " + path + ": " + content)
-            for folder in ("/root", {str(tmp_path)!r}, {str(key.parent)!r}):
+            for folder in ("/root", {str(tmp_path)!r}, {str(key.parent)!r}, "/dev/shm"):
                 try:
                     names = os.listdir(folder)
                 except OSError:
                     continue
-                if {key.name!r} in names or "leaderboard.db" in names:
+                if {key.name!r} in names or "leaderboard.db" in names or {segment.name!r} in names:
                     raise RuntimeError("LISTED " + folder + ": " + ", ".join(names))
     """
-    policy = SandboxedPolicy(make_python_bundle(body), FAST)
-    check_contained(policy, ("finished", None))
+    try:
+        policy = SandboxedPolicy(make_python_bundle(body), FAST)
+        check_contained(policy, ("finished", None))
+    finally:
+        segment.close()
+        segment.unlink()
     assert secret not in policy.output and "LEAKED" not in policy.output
     assert key.read_text().startswith("FAKE-SECRET")  # untouched
 
