@@ -38,6 +38,7 @@ from leaderboard.timeline import Penalty, TimelineEvent, penalties, timeline
 
 T = TypeVar("T")
 MAX_PER_PAGE = 200
+_IN_CHUNK = 1000  # ids per IN (...) list (SQLite and psycopg cap a statement's parameters)
 PROVISIONAL_RACES = 5  # default of Settings.provisional_races
 SNAPSHOT_MAX_AGE_S = 30.0  # default of Settings.cache_max_age_s
 
@@ -602,8 +603,9 @@ def robustness_run(session: Session, version_id: int) -> RobustnessRun | None:
 
 def rating_history(session: Session, submission_id: int) -> list[RatingPoint]:
     """A submission's rating after each of its ranked races, oldest first."""
-    rows = session.scalars(
-        select(RatingHistory)
+    columns = [RatingHistory.__table__.c[name] for name in RatingPoint.model_fields]
+    rows = session.execute(  # plain rows: one per race, often hundreds
+        select(*columns)
         .where(RatingHistory.submission_id == submission_id)
         .order_by(RatingHistory.id)
     )
@@ -943,32 +945,60 @@ def track_bests(session: Session, submission_id: int) -> list[TrackBest]:
     return [TrackBest(track=r.track, best_lap=r.best_lap, race_id=r.race_id) for r in rows]
 
 
-def head_to_head(session: Session, submission_id: int, *, races: int = 2000) -> list[HeadToHead]:
+def head_to_head(
+    session: Session,
+    submission_id: int,
+    *,
+    races: int = 2000,
+    max_age_s: float = SNAPSHOT_MAX_AGE_S,
+) -> list[HeadToHead]:
     """The submission's record against each submission it met in its latest ``races`` finished
-    ranked races, most-met first (a DNF is behind every finisher; two DNFs draw)."""
-    mine = (
-        select(RaceEntry.race_id, RaceEntry.status, RaceEntry.position)
-        .join(Race, Race.id == RaceEntry.race_id)
-        .where(
-            RaceEntry.submission_id == submission_id,
-            Race.kind == "ranked",
-            Race.status == "finished",
-        )
-        .order_by(RaceEntry.race_id.desc())
-        .limit(races)
-        .subquery()
+    ranked races, most-met first (a DNF is behind every finisher; two DNFs draw).
+
+    Cached under the submission's rated race count, which every finished ranked race it
+    drives moves (and nothing else changes the record)."""
+    rated = session.scalar(select(Submission.races).where(Submission.id == submission_id))
+    return cache_for(session).get(
+        ("head-to-head", submission_id, races),
+        rated,
+        lambda: _head_to_head(session, submission_id, races),
+        max_age_s,
     )
-    rows = session.execute(
-        select(
-            RaceEntry.submission_id,
-            RaceEntry.status,
-            RaceEntry.position,
-            mine.c.status,
-            mine.c.position,
-        )
-        .join(mine, mine.c.race_id == RaceEntry.race_id)
-        .where(RaceEntry.submission_id.is_not(None), RaceEntry.submission_id != submission_id)
+
+
+def _head_to_head(session: Session, submission_id: int, races: int) -> list[HeadToHead]:
+    # Driven from the submission's own entries (their index), newest first, a chunk at a time:
+    # joined in one query, SQLite walked every finished ranked race (its (kind, status)
+    # index) looking for the submission's, 150 ms at 100,000 races (issue 13).
+    entries = session.execute(
+        select(RaceEntry.race_id, RaceEntry.status, RaceEntry.position)
+        .where(RaceEntry.submission_id == submission_id)
+        .order_by(RaceEntry.race_id.desc())
     ).all()
+    mine: dict[int, tuple[str | None, int | None]] = {}
+    for start in range(0, len(entries), _IN_CHUNK):
+        chunk = {e.race_id: (e.status, e.position) for e in entries[start : start + _IN_CHUNK]}
+        # Kind and status tested here: in SQL, SQLite would scan its (kind, status) index.
+        for race_id, kind, status in session.execute(
+            select(Race.id, Race.kind, Race.status).where(Race.id.in_(chunk))
+        ):
+            if kind == "ranked" and status == "finished":
+                mine[race_id] = chunk[race_id]
+        if len(mine) >= races:
+            break
+    kept = sorted(mine, reverse=True)[:races]
+    rows = []
+    for start in range(0, len(kept), _IN_CHUNK):
+        for other, o_status, o_pos, race_id in session.execute(
+            select(
+                RaceEntry.submission_id, RaceEntry.status, RaceEntry.position, RaceEntry.race_id
+            ).where(
+                RaceEntry.race_id.in_(kept[start : start + _IN_CHUNK]),
+                RaceEntry.submission_id.is_not(None),
+                RaceEntry.submission_id != submission_id,
+            )
+        ):
+            rows.append((other, o_status, o_pos, *mine[race_id]))
     record: dict[int, list[int]] = {}
     for other, o_status, o_pos, m_status, m_pos in rows:
         w_l_d = record.setdefault(int(other), [0, 0, 0])

@@ -127,3 +127,18 @@ def test_provisional_submissions_rank_after_established_ones(
     rows = queries.leaderboard(db, provisional_races=0).items
     assert [r.submission_id for r in rows] == [middle.id, newcomer.id, veteran.id]
     assert not any(r.provisional for r in rows)
+
+
+def test_cached_head_to_head_follows_new_races(db: Session, settings: Settings) -> None:
+    """The head-to-head record is cached under the submission's rated race count: every
+    ranked race it finishes shows at once, and the cached record is the computed one."""
+    from leaderboard import queries
+
+    subs, _ = factories.seed(db, settings, n_submissions=3, n_races=2)
+    first = queries.head_to_head(db, subs[0])
+    assert first == queries._head_to_head(db, subs[0], 2000)
+    factories.seed(db, settings, n_submissions=0, n_races=4, seed=1)
+    db.expire_all()
+    again = queries.head_to_head(db, subs[0])
+    assert again == queries._head_to_head(db, subs[0], 2000)
+    assert sum(h.races for h in again) > sum(h.races for h in first)
