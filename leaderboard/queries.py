@@ -987,7 +987,7 @@ def _head_to_head(session: Session, submission_id: int, races: int) -> list[Head
         if len(mine) >= races:
             break
     kept = sorted(mine, reverse=True)[:races]
-    rows = []
+    rows: list[tuple[int, str | None, int | None, str | None, int | None]] = []
     for start in range(0, len(kept), _IN_CHUNK):
         for other, o_status, o_pos, race_id in session.execute(
             select(
@@ -998,10 +998,10 @@ def _head_to_head(session: Session, submission_id: int, races: int) -> list[Head
                 RaceEntry.submission_id != submission_id,
             )
         ):
-            rows.append((other, o_status, o_pos, *mine[race_id]))
+            rows.append((other or 0, o_status, o_pos, *mine[race_id]))  # never None here
     record: dict[int, list[int]] = {}
     for other, o_status, o_pos, m_status, m_pos in rows:
-        w_l_d = record.setdefault(int(other), [0, 0, 0])
+        w_l_d = record.setdefault(other, [0, 0, 0])
         m_done, o_done = m_status == "finished", o_status == "finished"
         if not m_done and not o_done:
             w_l_d[2] += 1
