@@ -439,6 +439,8 @@ def main(argv: list[str] | None = None) -> int:
             fill_s = fill(engine, args.submissions, args.races)
             add_validation_races(engine, VALIDATION_RACES, args.submissions)
             add_tournaments(engine)
+            with engine.begin() as conn:  # planner statistics of the whole fill
+                conn.exec_driver_sql("ANALYZE")
             fill_s["total"] = round(time.perf_counter() - start, 2)
             print(f"filled in {fill_s['total']} s: {fill_s}", file=sys.stderr)
         token = add_user(engine, f"loadtester{int(time.time())}")
