@@ -188,22 +188,19 @@ def opponent_features(
     order = ops.argsort(dist, axis=-1)[..., :k]  # (..., n, min(k, n))
     m = order.shape[-1]
     picked = ops.gather_rows(rel, order)  # (..., n, m, 4)
-    dx, dy, vx, vy = picked[..., 0], picked[..., 1], picked[..., 2], picked[..., 3]
-    cos, sin = ops.cos(poses[..., 2])[..., None], ops.sin(poses[..., 2])[..., None]
+    # x and y of the relative position and velocity side by side, (..., n, m, 2) each:
+    # both are turned into the car's frame at once.
+    x, y = picked[..., 0::2], picked[..., 1::2]
+    cos, sin = ops.cos(poses[..., 2])[..., None, None], ops.sin(poses[..., 2])[..., None, None]
     # The visible cars sort first: slot q is filled when more than q of them exist. Absent
     # slots are zeroed by the same factor that scales the present ones.
     others = ops.sum(valid, axis=-1)  # (..., n) visible other cars
     flag = ops.cast(ops.arange(m) < others[..., None], dist.dtype)  # (..., n, m)
-    per_m, per_v = flag * (1.0 / max_range), flag * (1.0 / v_max)
+    scale = ops.stack([flag * (1.0 / max_range), flag * (1.0 / v_max)], axis=-1)
+    forward = (cos * x + sin * y) * scale  # [dx, dvx] forward
+    leftward = (cos * y - sin * x) * scale  # [dy, dvy] to the left
     block = ops.stack(
-        [
-            flag,
-            (cos * dx + sin * dy) * per_m,
-            (cos * dy - sin * dx) * per_m,
-            (cos * vx + sin * vy) * per_v,
-            (cos * vy - sin * vx) * per_v,
-        ],
-        axis=-1,
+        [flag, forward[..., 0], leftward[..., 0], forward[..., 1], leftward[..., 1]], axis=-1
     )
     if m < k:
         block = ops.concat([block, ops.zeros((*lead, n, k - m, len(OPPONENT_FEATURES)))], -2)
