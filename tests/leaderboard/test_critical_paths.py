@@ -406,3 +406,22 @@ def test_a_claim_on_postgresql_takes_the_next_job_while_another_claim_holds_the_
     finally:
         impatient.dispose()
         engine.dispose()
+
+
+def test_a_job_done_after_a_failed_attempt_clears_its_error(
+    db: Session, settings: Settings
+) -> None:
+    subs = _subs(db, settings, 2)
+    race = _race(db, subs, [0, 1])
+    first = queue.claim(db, owner="w1", lease_s=60)
+    assert first is not None and queue.fail(db, first, "worker crashed")
+    job = db.get(Job, first.job_id)
+    assert job is not None and job.status == "queued" and job.error == "worker crashed"
+    second = queue.claim(db, owner="w2", lease_s=60)
+    assert second is not None and second.job_id == first.job_id
+    before = utcnow().replace(tzinfo=None)
+    assert queue.complete(db, second, factories.fake_result(race))
+    db.expire_all()
+    job = db.get(Job, first.job_id)
+    assert job is not None and (job.status, job.error, job.lease_token) == ("done", None, None)
+    assert job.updated_at.replace(tzinfo=None) >= before
