@@ -243,6 +243,7 @@ def test_races_and_wins_accumulate_and_an_all_dnf_race_has_no_winner(
 
 def test_queue_stats_count_every_status_from_zero(db: Session, settings: Settings) -> None:
     # What /health reports: every status, counted exactly (an absent status is 0).
+    assert queue.stats(db) == {"queued": 0, "leased": 0, "done": 0, "failed": 0}
     subs = _subs(db, settings, 2)  # their two validation races have run: 2 done
     assert queue.stats(db) == {"queued": 0, "leased": 0, "done": 2, "failed": 0}
     assert queue.pending(db) == 0
