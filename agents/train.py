@@ -121,6 +121,10 @@ class TrainArgs:
     F1TENTH race tracks have 0.4-1.1 m); empty: ordinary generated tracks"""
     train_laps: int = 1
     """laps per training episode"""
+    wall_ends_episode: bool = False
+    """--backend batch: a learner car that touches a wall retires at once (DNF, the DNF
+    penalty). The batched simulator's soft walls let a car slide on; on pybullet a car that
+    hits one at speed stops dead and often stays stuck, so a policy must learn to keep off"""
     randomise: bool = True
     """random start point, direction and grid order every training episode"""
     backend: str = "bullet"
@@ -269,6 +273,8 @@ def _check(args: TrainArgs) -> None:
         pair = getattr(args, name)
         if (pair or name != "procedural_hairpin") and (len(pair) != 2 or pair[0] > pair[1]):
             raise PolicyError(f"{name} takes two numbers, min then max; got {pair}")
+    if args.wall_ends_episode and args.backend != "batch":
+        raise PolicyError("wall_ends_episode is for --backend batch (pybullet walls stop a car)")
     if not 0.0 <= args.procedural <= 1.0:
         raise PolicyError(f"procedural is a share in [0, 1], got {args.procedural}")
     if not args.net_arch or min(args.net_arch) < 1:
@@ -582,7 +588,7 @@ def _batch_vec_env(
         reward_scale=args.reward_scale,
         dnf_penalty=args.dnf_penalty,
         seed=seed,
-        sim_kwargs=None if uncertainty is None else {"uncertainty": uncertainty},
+        sim_kwargs={"uncertainty": uncertainty, "end_on_wall": args.wall_ends_episode},
     )
 
 
@@ -664,7 +670,7 @@ def procedural_callback(args: TrainArgs, vec_env: Any) -> Any:
                 new = BatchSim(
                     view, old.n_envs, old.n_cars, old.laps, device=old.device,
                     random_starts=old.random_starts, seed=int(rng.integers(0, 2**31 - 1)),
-                    uncertainty=old.uncertainty,
+                    uncertainty=old.uncertainty, end_on_wall=old.rules.end_on_wall,
                 )  # fmt: skip
                 new.nature = old.nature
                 vec_env.sims[k] = new
@@ -791,6 +797,7 @@ def main(args: TrainArgs) -> dict[str, Any]:
         "procedural_length": args.procedural_length,
         "procedural_difficulty": args.procedural_difficulty,
         "procedural_hairpin": args.procedural_hairpin,
+        "wall_ends_episode": args.wall_ends_episode,
         "n_envs": args.n_envs,
         "n_cars": args.n_cars,
         "n_learners": args.n_learners,

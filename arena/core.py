@@ -73,6 +73,9 @@ class EpisodeRules:
         weights: racing reward weights.
         end_on_crash: a car's episode ends when it touches a wall or another car
             (DeepRacer's ``is_crashed``; DNF ``"crashed"``).
+        end_on_wall: a car's episode ends when it touches a wall (DNF ``"crashed"``); for
+            training on the batched simulator, whose soft walls let a car slide on where a
+            pybullet car that hits one at speed stops dead.
     """
 
     n_cars: int
@@ -88,6 +91,7 @@ class EpisodeRules:
     wheel_y: Array
     weights: RewardWeights
     end_on_crash: bool = False
+    end_on_wall: bool = False
 
     @property
     def dt(self) -> float:
@@ -114,6 +118,7 @@ class EpisodeRules:
         stuck_time: float = 4.0,
         weights: RewardWeights | None = None,
         end_on_crash: bool = False,
+        end_on_wall: bool = False,
     ) -> EpisodeRules:
         """The rules for ``track`` with arrays on ``ops``' device."""
         length = track.length
@@ -134,6 +139,7 @@ class EpisodeRules:
             wheel_y=ops.asarray(np.array([0.5, -0.5, 0.5, -0.5]) * params.track_width),
             weights=weights or RewardWeights(),
             end_on_crash=end_on_crash,
+            end_on_wall=end_on_wall,
         )
 
     def delta_s(self, ops: NumpyOps, s_to: Array, s_from: Array) -> Array:
@@ -352,8 +358,9 @@ def episode_step(
     )
     terminated = newly_finished | stuck | lost | flipped
     reason = where(stuck, STUCK, 0)
-    if rules.end_on_crash:  # static configuration
-        crashed = still & (sensed.wall | ops.any(contact, axis=-1))
+    if rules.end_on_crash or rules.end_on_wall:  # static configuration
+        hit = sensed.wall | ops.any(contact, axis=-1) if rules.end_on_crash else sensed.wall
+        crashed = still & hit
         terminated = terminated | crashed
         reason = where(crashed, CRASHED, reason)
     truncated = active & ~terminated & (steps >= rules.max_cycles)[:, None]

@@ -183,6 +183,9 @@ class BatchSim:
             In ``adversarial`` mode the natures' actions (B, N, k) come from ``step(...,
             nature=)`` or else from :attr:`nature` (a driver with ``act_batch``) applied to
             :meth:`nature_obs`; with neither, the nominal point (pulled into the box) stays.
+        end_on_wall: a car that touches a wall retires at once (DNF ``"crashed"``): for
+            training, so a policy learns that a wall costs the race, as on pybullet, where a
+            car that hits one at speed stops dead (these soft walls let it slide on).
     """
 
     # Model-uncertainty state, created on first use (set_perturbation / uncertainty=).
@@ -219,6 +222,7 @@ class BatchSim:
         random_starts: bool = False,
         seed: int | None = None,
         uncertainty: UncertaintyConfig | None = None,
+        end_on_wall: bool = False,
     ) -> None:
         if not 1 <= n_cars <= 16:
             raise SimError(f"n_cars must be between 1 and 16, got {n_cars}")
@@ -273,7 +277,7 @@ class BatchSim:
         self.rules = EpisodeRules.build(
             self.track, ops, n_cars=n_cars, laps=laps, control_hz=control_hz, params=p,
             max_cycles=self.max_cycles, off_track_limit=off_track_limit, stuck_time=stuck_time,
-            weights=self.weights,
+            weights=self.weights, end_on_wall=end_on_wall,
         )  # fmt: skip
         self.scales = self.nominal_scales(n_envs)
         self.perturbed = False  # set by set_perturbation: until then no uncertainty work

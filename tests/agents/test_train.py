@@ -219,3 +219,11 @@ def test_procedural_hairpin_range_is_checked() -> None:
 
     with pytest.raises(PolicyError, match="procedural_hairpin"):
         _check(TrainArgs(procedural_hairpin=[0.9]))
+
+
+def test_wall_ends_episode_is_refused_on_pybullet() -> None:
+    from agents.train import _check
+
+    with pytest.raises(PolicyError, match="wall_ends_episode"):
+        _check(TrainArgs(wall_ends_episode=True, backend="bullet"))
+    _check(TrainArgs(wall_ends_episode=True, backend="batch"))

@@ -152,6 +152,39 @@ def test_a_car_driven_into_a_wall_stays_out_of_it() -> None:
     assert deepest < 0.15  # m into the wall at worst, never through it
 
 
+@pytest.mark.parametrize("end_on_wall", [False, True])
+def test_end_on_wall_retires_a_car_the_step_it_touches_a_wall(end_on_wall: bool) -> None:
+    """Training option (``--wall-ends-episode``): soft walls let a car slide on, so a car
+    that touches one may be retired at once, as a pybullet car hitting one at speed stops."""
+    track = drag_strip()
+    sim = BatchSim(track, 1, 1, auto_reset=False, end_on_wall=end_on_wall)
+    sim.set_poses(pose_at(track, -20.0, 0.0, yaw_offset=1.2)[None, None])
+    for _ in range(60):
+        res = sim.step(np.array([[[0.0, 1.0]]]))
+        if res.wall[0, 0]:
+            break
+    assert res.wall[0, 0], "never reached the wall"
+    # Terminated the very step it touched (the stuck test would need 4 s, off-track 3 s).
+    assert bool(res.terminated[0, 0]) is end_on_wall
+    if not end_on_wall:  # the car goes on against the wall
+        res = sim.step(np.array([[[0.0, 1.0]]]))
+        assert not res.terminated[0, 0]
+
+
+def test_end_on_wall_leaves_car_contacts_alone() -> None:
+    """Unlike DeepRacer's end_on_crash, a rear-end between two cars retires neither."""
+    track = drag_strip()
+    sim = BatchSim(track, 1, 2, auto_reset=False, end_on_wall=True)
+    poses = np.stack([pose_at(track, -25.0), pose_at(track, -26.0)])
+    sim.set_poses(poses[None], np.array([[[0.0, 0.0, 0.0], [4.0, 0.0, 0.0]]]))
+    touched = False
+    for _ in range(20):
+        res = sim.step(np.array([[[0.0, 0.0], [0.0, 0.0]]]))
+        touched |= bool(res.contact[0, 0, 1])
+        assert not res.terminated.any()
+    assert touched
+
+
 def test_pursuit_cars_finish_and_environments_restart_by_themselves() -> None:
     from agents.baselines import PursuitPolicy
 
