@@ -160,8 +160,12 @@ def complete(
     viser_path: str | None = None,
     sandbox: str | None = None,
     duration_s: float | None = None,
+    logs: dict[str, dict[str, Any]] | None = None,
 ) -> bool:
     """Store a job's result and its rating update, once; False if the lease was lost.
+
+    ``logs`` are the owner-only logs per car (``JobResult.logs``: the policy's output and
+    sandbox mode), stored with the result in ``race_logs``.
 
     The job row is updated first (taking the write lock), conditioned on the lease token;
     only if that changed a row are the result and ratings written, and all of it commits
@@ -190,6 +194,7 @@ def complete(
         viser_path=viser_path,
         sandbox=sandbox,
         duration_s=duration_s,
+        logs=logs,
     )
     session.commit()
     return True

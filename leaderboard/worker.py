@@ -327,6 +327,7 @@ class Worker:
                 viser_path=result.viser_path,
                 sandbox=result.sandbox,
                 duration_s=result.duration_s,
+                logs=result.logs,
             )
         if stored:
             stats.completed += 1

@@ -21,7 +21,14 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from leaderboard import matchmaking
-from leaderboard.models import Job, Race, RatingHistory, Submission, SubmissionVersion
+from leaderboard.models import (
+    Job,
+    Race,
+    RaceLog,
+    RatingHistory,
+    Submission,
+    SubmissionVersion,
+)
 from leaderboard.settings import Settings
 from leaderboard.worker import Worker, progress_path
 from submissions import sandbox
@@ -109,6 +116,9 @@ def test_worker_runs_real_races_end_to_end(
         select(SubmissionVersion).where(SubmissionVersion.submission_id == upload["submission_id"])
     )
     assert version is not None and version.status == "validated", version.error if version else ""
+    # The owner-only logs of the sandboxed car (JobResult.logs) are stored with the result.
+    logs = db.scalars(select(RaceLog).where(RaceLog.race_id == validation.id)).all()
+    assert logs and all(row.sandbox_mode in ("bwrap", "seccomp-weak") for row in logs)
     ranked = db.scalars(select(Race).where(Race.kind == "ranked", Race.status == "finished")).all()
     assert len(ranked) == 2
     for race in ranked:
