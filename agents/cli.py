@@ -159,6 +159,7 @@ def _watching(args: argparse.Namespace, policies: list[Any], console: Any) -> It
     if not args.watch:
         yield
         return
+    from arena.cars import car_params
     from arena.colours import car_colour
     from arena.replay import observe
     from arena.viser_scene import LiveScene, LiveWatcher
@@ -168,7 +169,9 @@ def _watching(args: argparse.Namespace, policies: list[Any], console: Any) -> It
         {"agent": f"car_{i}", "name": getattr(p, "name", f"car_{i}"), "colour": car_colour(i)}
         for i, p in enumerate(policies)
     ]
-    scene = LiveScene(load_track(args.track), cars, port=args.watch_port, laps=args.laps)
+    scene = LiveScene(
+        load_track(args.track), cars, port=args.watch_port, laps=args.laps, car=car_params(args.car)
+    )
     console.print(f"watch the race live at {scene.url}")
     try:
         with observe(LiveWatcher(scene)):

@@ -28,6 +28,7 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 from gymnasium import spaces
 
+from arena.cars import car_name
 from arena.colours import car_colour
 from arena.env import RacingEnv
 from arena.replay import ReplayLog
@@ -278,6 +279,12 @@ def _race(
                 for i, a in enumerate(agents)
             ],
             env_version=ENV_VERSION,
+            car={
+                "name": car_name(env.params),
+                "length": env.params.length,
+                "width": env.params.width,
+                "height": env.params.height,
+            },
         )
         _frame(env, replay, 0.0)
     for i, (agent, pol) in enumerate(zip(agents, policies, strict=True)):

@@ -74,6 +74,9 @@ class ReplayLog:
     cars: list[dict[str, Any]]
     env_version: str
     laps: int = 0  # the race's lap count; 0 = not recorded (older logs)
+    # The cars' size: {"name": preset or None, "length", "width", "height": m}; {} = not
+    # recorded (older logs: the default F1TENTH car).
+    car: dict[str, Any] = field(default_factory=dict)
     t: list[float] = field(default_factory=list)
     poses: list[list[list[float] | None]] = field(default_factory=list)
     steering: list[list[float]] = field(default_factory=list)
@@ -125,6 +128,7 @@ class ReplayLog:
             "dt": self.dt,
             "cars": self.cars,
             **({"laps": self.laps} if self.laps > 0 else {}),
+            **({"car": self.car} if self.car else {}),
             "frames": {
                 "t": self.t,
                 "poses": self.poses,
@@ -156,6 +160,7 @@ class ReplayLog:
                 cars=list(data["cars"]),
                 env_version=str(data["env_version"]),
                 laps=int(data.get("laps", 0)),
+                car=_car_size(data.get("car", {})),
                 t=list(frames["t"]),
                 poses=list(frames["poses"]),
                 steering=list(frames["steering"]),
@@ -176,3 +181,19 @@ class ReplayLog:
         except (OSError, EOFError, UnicodeDecodeError, json.JSONDecodeError) as err:
             raise ReplayError(f"{path}: corrupt replay ({err})") from None
         return cls.from_dict(data)
+
+
+def _car_size(data: Any) -> dict[str, Any]:
+    """A replay's ``car`` entry, checked: a preset name and positive sizes in metres."""
+    if not isinstance(data, dict):
+        raise ValueError("car must be an object")
+    out: dict[str, Any] = {}
+    if data.get("name") is not None:
+        out["name"] = str(data["name"])[:32]
+    for key in ("length", "width", "height"):
+        if key in data:
+            value = float(data[key])
+            if not 0.0 < value < 10.0:
+                raise ValueError(f"car {key} must be between 0 and 10 m, got {value}")
+            out[key] = value
+    return out

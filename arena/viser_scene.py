@@ -24,6 +24,7 @@ viser is optional (the ``eval`` extra) and imported only when a scene is built.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import io
 import time
 from collections.abc import Sequence
@@ -267,6 +268,18 @@ class SceneCars:
             self.board_text = board
 
 
+def replay_car(size: dict[str, Any]) -> CarParams:
+    """The car dimensions of a replay log's ``car`` entry (the default car for old logs).
+
+    >>> replay_car({"name": "deepracer", "length": 0.26, "width": 0.19, "height": 0.1}).length
+    0.26
+    >>> replay_car({}) == CarParams()
+    True
+    """
+    dims = {k: float(size[k]) for k in ("length", "width", "height") if k in size}
+    return dataclasses.replace(CarParams(), **dims)
+
+
 def build_scene(
     server: Any,
     track: Track,
@@ -436,16 +449,18 @@ class LiveScene:
         port: int = 8080,
         laps: int = 0,
         start: FloatArray | None = None,
+        car: CarParams | None = None,
     ) -> None:
         import viser  # noqa: PLC0415 - optional `eval` extra
 
         quiet = io.StringIO()
         with contextlib.redirect_stdout(quiet):  # viser prints its address table
             self.server = viser.ViserServer(host=host, port=port, verbose=False)
-        self.cars = build_scene(self.server, track, cars, start=start)
+        car = car or CarParams()
+        self.cars = build_scene(self.server, track, cars, car=car, start=start)
         self.laps = laps
         self.tracker = StandingsTracker(track, [str(c.get("agent", "")) for c in cars])
-        self.chase = 6.0 * marker_length(track, CarParams())
+        self.chase = 6.0 * marker_length(track, car)
         self.status = self.server.gui.add_markdown("**t = 0.0 s**")
         self.follow = self.server.gui.add_dropdown(
             "Follow", ("whole track", *self.cars.names), initial_value="whole track"
@@ -576,6 +591,7 @@ __all__ = [
     "move_cars",
     "pole_heights",
     "project",
+    "replay_car",
     "track_ribbon",
     "yaw_to_wxyz",
 ]

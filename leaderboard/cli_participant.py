@@ -342,10 +342,10 @@ def replay_command(args: argparse.Namespace) -> int:
     import time  # noqa: PLC0415
 
     from arena.replay import ReplayLog  # noqa: PLC0415 - not in the web process
-    from arena.viser_scene import LiveScene, LiveWatcher  # noqa: PLC0415
+    from arena.viser_scene import LiveScene, LiveWatcher, replay_car  # noqa: PLC0415
 
     log = ReplayLog.load(path)
-    scene = LiveScene(log.track, log.cars, port=args.port)
+    scene = LiveScene(log.track, log.cars, port=args.port, car=replay_car(log.car))
     print(f"replay of {path.name} at {scene.url} (Ctrl-C stops)", flush=True)
     watcher = LiveWatcher(scene, speed=args.speed)
     try:

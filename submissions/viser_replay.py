@@ -32,7 +32,7 @@ from numpy.typing import NDArray
 
 from arena.replay import ReplayLog
 from arena.standings import Standing, StandingsTracker, race_laps
-from arena.viser_scene import build_scene, yaw_to_wxyz  # noqa: F401 - re-exported
+from arena.viser_scene import build_scene, replay_car, yaw_to_wxyz  # noqa: F401 - re-exported
 from submissions.errors import SubmissionError
 
 FloatArray = NDArray[np.float64]
@@ -114,7 +114,8 @@ def write_viser(replay: ReplayLog, out: Path, fps: float = 30) -> Path:
     with contextlib.redirect_stdout(quiet):  # viser prints its address table even when quiet
         server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
     try:
-        cars = build_scene(server, replay.track, replay.cars, start=poses[0])
+        car = replay_car(replay.car)
+        cars = build_scene(server, replay.track, replay.cars, car=car, start=poses[0])
         cars.rank(standings[0], laps)
         serializer = server.get_scene_serializer()
         for k in range(len(poses)):

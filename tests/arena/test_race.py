@@ -220,12 +220,33 @@ def test_replay_round_trip_keeps_frames_and_events(four_pursuit: Any, tmp_path: 
     assert back.steering == replay.steering and back.speed == replay.speed
     assert back.events == replay.events
     assert back.cars == replay.cars and back.dt == replay.dt
+    assert (
+        back.car == replay.car == {"name": "f1tenth", "length": 0.5, "width": 0.3, "height": 0.12}
+    )
     assert back.env_version == ENV_VERSION
     np.testing.assert_allclose(back.track.centre, replay.track.centre, atol=1e-6)
     kinds = {e["type"] for e in back.events}
     assert {"lap", "finish"} <= kinds
     poses = back.pose_array()
     assert poses.shape == (back.n_frames, 4, 3)
+
+
+def test_replays_record_the_car_they_were_raced_with() -> None:
+    """A DeepRacer-car race replays with 0.26 m cars, not the default 0.5 m ones (viser)."""
+    from arena.viser_scene import replay_car
+
+    class Still:  # stands on the grid until the stuck rule retires it (4 s)
+        def reset(self, seed: int | None = None) -> None:
+            pass
+
+        def act(self, obs: Any) -> Any:
+            return np.zeros(2, dtype=np.float32)
+
+    _, replay = run_race([Still()], track="oval", laps=1, env_kwargs={"car": "deepracer"})
+    assert replay is not None and replay.car["name"] == "deepracer"
+    assert replay_car(ReplayLog.from_dict(replay.to_dict()).car).length == pytest.approx(0.26)
+    old = {k: v for k, v in replay.to_dict().items() if k != "car"}  # a log from before
+    assert replay_car(ReplayLog.from_dict(old).car).length == 0.5
 
 
 def write_gz(path: Path, payload: bytes) -> Path:
@@ -241,6 +262,7 @@ def test_corrupt_replays_raise_replay_error(four_pursuit: Any, tmp_path: Path) -
     wrong_version = {**good, "version": 99}
     no_frames = {k: v for k, v in good.items() if k != "frames"}
     bad_track = {**good, "track": {"name": "x"}}
+    bad_car = {**good, "car": {"name": "f1tenth", "length": -1.0}}
     cases = {
         "garbage.gz": b"\x00not gzip at all",
         "half.gz": gzip.compress(json.dumps(good).encode())[:200],
@@ -253,9 +275,10 @@ def test_corrupt_replays_raise_replay_error(four_pursuit: Any, tmp_path: Path) -
         "version.gz": wrong_version,
         "frames.gz": no_frames,
         "track.gz": bad_track,
+        "car.gz": bad_car,
     }.items():
         write_gz(tmp_path / name, json.dumps(doc).encode())
-    names = [*cases, "text.gz", "list.gz", "version.gz", "frames.gz", "track.gz"]
+    names = [*cases, "text.gz", "list.gz", "version.gz", "frames.gz", "track.gz", "car.gz"]
     for name in names:
         with pytest.raises(ReplayError):
             ReplayLog.load(tmp_path / name)

@@ -155,7 +155,8 @@
     ctx.arc(v.tx(sx), v.ty(sy), 4, 0, 2 * Math.PI);
     ctx.stroke();
     // the cars: a bright arrow at least MIN_CAR_PX long, labelled with the car's number
-    const len = Math.max(MIN_CAR_PX, v.scale * CAR_LENGTH);
+    const carLength = (doc.car && doc.car.length) || CAR_LENGTH; // m, from the replay
+    const len = Math.max(MIN_CAR_PX, v.scale * carLength);
     doc.frames.poses[frame].forEach((p, c) => {
       if (!p) return;
       const [x, y, yaw] = p;
