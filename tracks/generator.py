@@ -46,7 +46,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from tracks.errors import TrackError
-from tracks.geometry import FloatArray, Track
+from tracks.geometry import FloatArray, Track, short_float
 from tracks.validation import fit_widths, grid_fits, validate_track
 
 MIN_LENGTH = 30.0  # m: shortest lap on offer
@@ -99,18 +99,12 @@ def random_spec(seed: int, length: float, difficulty: float, hairpin: float | No
     """
     opts = []
     if length != DEFAULT_LENGTH:
-        opts.append(f"length={_number(length)}")
+        opts.append(f"length={short_float(length)}")
     if difficulty != DEFAULT_DIFFICULTY:
-        opts.append(f"difficulty={_number(difficulty)}")
+        opts.append(f"difficulty={short_float(difficulty)}")
     if hairpin is not None:
-        opts.append(f"hairpin={_number(hairpin)}")
+        opts.append(f"hairpin={short_float(hairpin)}")
     return f"random:{seed}" + (":" + ",".join(opts) if opts else "")
-
-
-def _number(x: float) -> str:
-    """Short text for a number that still reads back as exactly the same float."""
-    short = f"{x:g}"
-    return short if float(short) == x else repr(float(x))
 
 
 def _check_arguments(seed: int, length: float, difficulty: float, hairpin: float | None) -> None:

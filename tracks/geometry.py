@@ -14,6 +14,7 @@ a bend do not collapse onto a vertex.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import cached_property
 from typing import Literal
@@ -52,6 +53,16 @@ class Projection:
     d: FloatArray
     heading: FloatArray
     segment: IntArray
+
+
+def short_float(x: float) -> str:
+    """Short text for a number that still reads back as exactly the same float.
+
+    >>> short_float(0.52), short_float(80.0), short_float(0.1 + 0.2)
+    ('0.52', '80', '0.30000000000000004')
+    """
+    short = f"{x:g}"
+    return short if float(short) == x else repr(float(x))
 
 
 def _cross(a: FloatArray, b: FloatArray) -> FloatArray:
@@ -669,6 +680,51 @@ class Track:
             axis=1,
         )
         out._set_arrays(self.centre, w, self.tangents, self.curvature)
+        return out
+
+    def scaled(self, factor: float) -> Track:
+        """The same track with every length multiplied by ``factor``, validated.
+
+        Centre line, half-widths, waypoints and race line scale (race-line speeds by
+        ``sqrt(factor)``, :meth:`Raceline.scaled`); headings stay, curvature divides by
+        ``factor``. The point count stays too, so the spacing scales with the track. The name
+        gets the suffix ``@<factor>``, which :func:`tracks.load_track` reads back
+        (``load_track("oval@0.52")``): a track for a car ``factor`` times the size, e.g. the
+        1/18 DeepRacer car (0.26 m long) on roads drawn for the 0.5 m F1TENTH car.
+
+        Raises:
+            TrackError: ``factor`` is not a positive finite number, or the scaled track
+                fails :func:`tracks.validation.validate_track` (shorter than 5 m, say) or has
+                implausible half-widths.
+
+        >>> from tracks import load_track
+        >>> oval = load_track("oval")
+        >>> small = oval.scaled(0.52)
+        >>> small.name, round(small.length / oval.length, 6)
+        ('oval@0.52', 0.52)
+        """
+        from tracks.validation import check_raw_inputs, validate_track  # noqa: PLC0415 (cycle)
+
+        try:
+            f = float(factor)
+        except (TypeError, ValueError):
+            f = math.nan
+        if not (math.isfinite(f) and f > 0.0):
+            raise TrackError(f"a track scale must be a positive number, got {factor!r}")
+        out = Track.__new__(Track)
+        out.name = f"{self.name}@{short_float(f)}"
+        out.description = self.description
+        out.raceline = self.raceline.scaled(f) if self.raceline is not None else None
+        out.waypoints = self.waypoints * f if self.waypoints is not None else None
+        out.is_reversed = self.is_reversed
+        out.import_notes = self.import_notes
+        widths = np.stack([self.width_left, self.width_right], axis=1) * f
+        out._set_arrays(self.centre * f, widths, self.tangents, self.curvature / f)
+        try:
+            check_raw_inputs(out.centre, out.width_left, out.width_right)
+            validate_track(out)
+        except TrackError as err:
+            raise TrackError(f"{self.name} scaled by {short_float(f)}: {err}") from None
         return out
 
     def reversed(self) -> Track:

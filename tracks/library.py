@@ -2,8 +2,13 @@
 
 A track can be named three ways wherever the project takes a track: a built-in name
 (``tracks/data/<name>.json``), a path to a track file (JSON, F1TENTH ``.csv``, DeepRacer
-``.npy``), or ``random:<seed>[:length=<m>,difficulty=<0..1>]`` for a procedurally generated
-circuit (the same one for the same seed and parameters).
+``.npy``), or ``random:<seed>[:length=<m>,difficulty=<0..1>,hairpin=<m>]`` for a procedurally
+generated circuit (the same one for the same seed and parameters).
+
+Any of them may end in ``@<factor>``: the track scaled by that factor
+(:meth:`tracks.Track.scaled`, whose name it is), e.g. ``oval@0.52`` or
+``random:7:length=80,hairpin=0.6@0.52`` for the 1/18 DeepRacer car on roads drawn for the
+1/10 F1TENTH car. A file whose own name ends that way is found first.
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ from tracks.geometry import Track
 
 DATA_DIR = Path(__file__).parent / "data"
 RANDOM_PREFIX = "random:"
+SCALE_MARK = "@"
 
 
 def list_tracks() -> list[str]:
@@ -60,15 +66,38 @@ def _load_random(spec: str) -> Track:
     return generate_track(seed, **params)
 
 
+def split_scale(name: str) -> tuple[str, float | None]:
+    """``("oval", 0.52)`` for ``"oval@0.52"``; ``(name, None)`` when ``name`` names no scale
+    (no ``@<number>`` at the end, or it is an existing file's own name).
+
+    >>> split_scale("random:7:length=80@0.52")
+    ('random:7:length=80', 0.52)
+    >>> split_scale("oval")
+    ('oval', None)
+    """
+    base, mark, factor = name.rpartition(SCALE_MARK)
+    if not mark or not base or Path(name).exists():
+        return name, None
+    try:
+        return base, float(factor)
+    except ValueError:  # an "@" that is part of a name or path
+        return name, None
+
+
 def load_track(track: str | Path | Track) -> Track:
-    """Resolve a built-in name, a file path, ``random:<seed>`` or a :class:`Track` to a Track.
+    """Resolve a built-in name, a file path, ``random:<seed>`` or a :class:`Track` to a Track;
+    any name may end in ``@<factor>`` (the track scaled, see the module docstring).
 
     Raises:
-        TrackError: the name is unknown, the file is missing or malformed.
+        TrackError: the name is unknown, the file is missing or malformed, or the scale is
+            not a positive number or leaves an invalid track.
     """
     if isinstance(track, Track):
         return track
     text = str(track)
+    base, factor = split_scale(text)
+    if factor is not None:
+        return load_track(base).scaled(factor)  # a few ms: not cached
     if text.startswith(RANDOM_PREFIX):
         return _load_random(text)
     if isinstance(track, str) and text in list_tracks():
@@ -78,5 +107,6 @@ def load_track(track: str | Path | Track) -> Track:
         return read_track_file(path)
     known = ", ".join(list_tracks()) or "none installed"
     raise TrackError(
-        f"unknown track {text!r}; built-in tracks: {known}; or a file path, or random:<seed>"
+        f"unknown track {text!r}; built-in tracks: {known}; or a file path, or random:<seed>; "
+        "any of them scaled with @<factor>"
     )
