@@ -28,12 +28,16 @@ run, against the same in-process figures.
    overlaps that work. On a 2-core machine the four workers share the cores with the
    simulator.
 
+0. **Start-up** (``--starts``): seconds from a sandbox's start to its policy's ``READY`` and
+   the CPU seconds its processes spent by then, for the zeros policy (the sandbox and the
+   worker's own imports) and the pursuit policy (plus the simulator modules it imports).
+
 Nothing is pinned: the sandboxed worker is a second process by design.
 
 Usage::
 
     python bench/sandbox_overhead.py [--track oval] [--steps 1000] [--blocks 10] [--races 3]
-                                     [--modes bwrap seccomp] [--json] [--out FILE]
+                                     [--starts 3] [--modes bwrap seccomp] [--json] [--out FILE]
 """
 
 from __future__ import annotations
@@ -224,6 +228,43 @@ def per_step(
     return out
 
 
+def startup(folder: Path, limits: Any, modes: list[str], repeats: int) -> dict[str, Any]:
+    """Seconds from a sandbox's start to its policy's ``READY``, and the CPU seconds its
+    processes spent by then, per mode and policy (the zeros policy: the worker's own
+    imports and the sandbox; pursuit: plus the simulator's modules it imports); medians of
+    ``repeats`` starts, one of each in turn."""
+    import statistics
+
+    from submissions.remote import SandboxedPolicy
+
+    bundles = {
+        "zeros": _bundle(folder, "zeros_start", ZERO_SOURCE),
+        "pursuit": _bundle(folder, "pursuit_start", PURSUIT_SOURCE),
+    }
+    samples: dict[str, list[tuple[float, float]]] = {f"{m}/{b}": [] for m in modes for b in bundles}
+    for _ in range(repeats):
+        for key, got in samples.items():
+            mode, name = key.split("/")
+            policy = _in_mode(mode, lambda name=name: SandboxedPolicy(bundles[name], limits))
+            try:
+                begun = time.perf_counter()
+                policy.start()
+                pids = _sandbox_pids(policy)  # bwrap's and the worker's, while they run
+                policy.reset(0)  # waits for READY
+                wall = time.perf_counter() - begun
+                cpu = _schedstat(pids + [p for p in _sandbox_pids(policy) if p not in pids])[0]
+                got.append((wall, cpu * 1e-9))
+            finally:
+                policy.close()
+    return {
+        key: {
+            "ready_s": statistics.median(w for w, _ in got),
+            "cpu_s": statistics.median(c for _, c in got),
+        }
+        for key, got in samples.items()
+    }
+
+
 def races_per_minute(
     folder: Path, track: str, races: int, limits: Any, modes: list[str]
 ) -> dict[str, Any]:
@@ -300,6 +341,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     load_before = os.getloadavg()
     with tempfile.TemporaryDirectory(prefix="slipstream-bench-") as tmp:
         folder = Path(tmp)
+        starts = startup(folder, limits, modes, args.starts) if args.starts else {}
         steps = per_step(folder, args.track, args.steps, limits, modes, args.blocks)
         races = (
             races_per_minute(folder, args.track, args.races, limits, modes) if args.races else {}
@@ -316,6 +358,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             "load_average_before": load_before,
             "load_average": os.getloadavg(),
         },
+        "startup": starts,
         "per_step": steps,
         "races": races,
         "skipped": skipped,
@@ -385,6 +428,13 @@ def print_table(doc: dict[str, Any]) -> None:
             f"{r['pooled_after_start_ratio']:.2f}",
             f"{r['finished_fraction']:.0%}",
         )
+    if doc.get("startup"):
+        start_table = Table(title="Sandbox start-up to READY (median of starts)")
+        for name in ("mode / policy", "wall s", "CPU s of its processes"):
+            start_table.add_column(name, justify="right")
+        for key, s in doc["startup"].items():
+            start_table.add_row(key, f"{s['ready_s']:.2f}", f"{s['cpu_s']:.2f}")
+        console.print(start_table)
     console.print(step_table)
     if races:
         console.print(race_table)
@@ -404,6 +454,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument(
         "--races", type=int, default=3, help="races per races-per-minute figure (0: none)"
+    )
+    parser.add_argument(
+        "--starts", type=int, default=3, help="sandbox starts per start-up figure (0: none)"
     )
     parser.add_argument("--blocks", type=int, default=10, help="interleaved blocks per step figure")
     parser.add_argument(

@@ -269,6 +269,33 @@ class JobResult:
         )
 
 
+def extract_bundle(entrant: Entrant, env: EnvSpec, tmp: Path, bundles: dict[str, Bundle]) -> Bundle:
+    """``entrant``'s bundle, extracted under ``tmp`` once per source (cached in ``bundles``).
+
+    Raises:
+        BundleError: the bundle is invalid.
+    """
+    if entrant.source not in bundles:
+        dest = tmp / f"bundle_{len(bundles)}"
+        bundles[entrant.source] = open_bundle(Path(entrant.source), dest, env=env)
+    return bundles[entrant.source]
+
+
+def resolve_car(job: RaceJob, env: EnvSpec, tmp: Path, bundles: dict[str, Bundle]) -> str:
+    """The car preset the job races (:func:`job_car`), from its bundles' manifests (extracted
+    under ``tmp``, cached in ``bundles``): known before any sandbox starts, so each policy
+    is told its car (the env spec's ``car``).
+
+    Raises:
+        BundleError: a bundle is invalid, declares another car than the job's, or the
+            bundles disagree.
+    """
+    declared = [
+        extract_bundle(e, env, tmp, bundles).manifest.car for e in job.entrants if not e.is_baseline
+    ]
+    return job_car(job, declared)
+
+
 def open_entrant(
     entrant: Entrant,
     job: RaceJob,
@@ -276,9 +303,11 @@ def open_entrant(
     tmp: Path,
     bundles: dict[str, Bundle],
     pool: SandboxPool | None,
+    car: str = DEFAULT_CAR,
 ) -> tuple[Any, Bundle | None]:
     """The policy of one entrant: a baseline in-process, or a bundle (extracted under
-    ``tmp`` once per source, cached in ``bundles``) in its sandbox (from ``pool`` if given).
+    ``tmp`` once per source, cached in ``bundles``) in its sandbox (from ``pool`` if given),
+    told that it drives ``car``.
 
     Returns:
         The policy (named ``entrant.name``) and its bundle (None for a baseline).
@@ -295,19 +324,16 @@ def open_entrant(
         )
         policy.name = entrant.name
         return policy, None
-    if entrant.source not in bundles:
-        dest = tmp / f"bundle_{len(bundles)}"
-        bundles[entrant.source] = open_bundle(Path(entrant.source), dest, env=env)
-    bundle = bundles[entrant.source]
-    return _sandboxed(bundle, job, env, entrant.name, pool), bundle
+    bundle = extract_bundle(entrant, env, tmp, bundles)
+    return _sandboxed(bundle, job, env, entrant.name, pool, car), bundle
 
 
 def _sandboxed(
-    bundle: Bundle, job: RaceJob, env: EnvSpec, name: str, pool: SandboxPool | None
+    bundle: Bundle, job: RaceJob, env: EnvSpec, name: str, pool: SandboxPool | None, car: str
 ) -> SandboxedPolicy:
     from submissions.remote import SandboxedPolicy, make_env_spec  # noqa: PLC0415 - the sandbox
 
-    spec = make_env_spec(lidar_rays=env.lidar_rays, k_opponents=env.k_opponents)
+    spec = make_env_spec(lidar_rays=env.lidar_rays, k_opponents=env.k_opponents, car=car)
     if pool is not None:
         policy = pool.policy(bundle, job.limits, spec)
     else:
@@ -443,18 +469,16 @@ def _run_job(
             write_progress(progress_file, step)
 
     logs: dict[str, dict[str, str]] = {}
-    declared: list[str] = []  # the bundles' cars
+    car = resolve_car(job, env, tmp, bundles)  # before any sandbox starts: each is told it
     try:
         for entrant in job.entrants:
-            policy, bundle = open_entrant(entrant, job, env, tmp, bundles, pool)
+            policy, bundle = open_entrant(entrant, job, env, tmp, bundles, pool, car)
             if bundle is not None:
-                declared.append(bundle.manifest.car)
                 if job.wall_clock_s is not None:
                     policy.race_deadline = started + job.wall_clock_s
                 agents[id(policy)] = f"car_{len(policies)}"
                 sandboxed.append(policy)
             policies.append(policy)
-        car = job_car(job, declared)
         result, replay = run_race(
             policies,
             track=job.track,
@@ -508,6 +532,7 @@ __all__ = [
     "job_car",
     "progress_path",
     "race_wall_clock_s",
+    "resolve_car",
     "run_race_job",
     "run_race_jobs",
 ]

@@ -84,6 +84,7 @@ from numpy.typing import NDArray
 
 from agents.gym_env import register_bundle_loader
 from arena.actions import DiscreteActions
+from arena.cars import DEFAULT_CAR, car_name
 from arena.env import RacingEnv
 from arena.observations import ObservationLayout
 from arena.race import ACTION_TOLERANCE, action_problem
@@ -137,14 +138,20 @@ class PolicyInvalid(PolicyFailure):
 
 
 def make_env_spec(
-    *, lidar_rays: int = 64, k_opponents: int = 3, action_mode: str = "continuous"
+    *,
+    lidar_rays: int = 64,
+    k_opponents: int = 3,
+    action_mode: str = "continuous",
+    car: str | None = DEFAULT_CAR,
 ) -> dict[str, Any]:
     """The env spec a sandboxed policy is given (and its actions are checked against).
 
     Keys: ``obs_mode``, ``obs_shape``, ``action_mode``, ``action_shape`` (``[2]`` or
     ``[]``), ``action_low``/``action_high`` (continuous), ``n_actions`` (discrete),
-    ``lidar_rays``, ``k_opponents``, ``env_version``. Matches :class:`arena.env.RacingEnv`
-    with the same arguments, without building one.
+    ``lidar_rays``, ``k_opponents``, ``env_version``, and ``car``: the car preset it drives
+    (``"f1tenth"`` or ``"deepracer"``, :data:`arena.cars.CAR_PRESETS`; None for a car
+    that is no preset). Matches :class:`arena.env.RacingEnv` with the same arguments,
+    without building one.
     """
     spec: dict[str, Any] = {
         "obs_mode": "vector",
@@ -153,6 +160,7 @@ def make_env_spec(
         "lidar_rays": lidar_rays,
         "k_opponents": k_opponents,
         "env_version": ENV_VERSION,
+        "car": car,
     }
     if action_mode == "discrete":
         return spec | {"action_shape": [], "n_actions": DiscreteActions().n}
@@ -160,7 +168,7 @@ def make_env_spec(
 
 
 def env_spec_of(env: RacingEnv) -> dict[str, Any]:
-    """The env spec of a built env (its first car's spaces)."""
+    """The env spec of a built env (its first car's spaces, its car preset)."""
     agent = env.possible_agents[0]
     obs_space = env.observation_space(agent)
     act_space = env.action_space(agent)
@@ -171,6 +179,7 @@ def env_spec_of(env: RacingEnv) -> dict[str, Any]:
         "lidar_rays": env.layout.n_rays,
         "k_opponents": env.layout.k_opponents,
         "env_version": ENV_VERSION,
+        "car": car_name(env.params),
     }
     if isinstance(act_space, spaces.Discrete):
         return spec | {"action_shape": [], "n_actions": int(act_space.n)}
@@ -183,11 +192,13 @@ def env_spec_of(env: RacingEnv) -> dict[str, Any]:
 
 
 def spec_for_manifest(manifest: Manifest) -> dict[str, Any]:
-    """The default env spec for a bundle's manifest (its declared ``env`` and action mode)."""
+    """The default env spec for a bundle's manifest (its declared ``env``, action mode and
+    car)."""
     return make_env_spec(
         lidar_rays=int(manifest.env.get("lidar_rays", 64)),
         k_opponents=int(manifest.env.get("k_opponents", 3)),
         action_mode=manifest.action_mode,
+        car=manifest.car,
     )
 
 

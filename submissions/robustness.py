@@ -45,9 +45,9 @@ from submissions.jobs import (
     WALL_CLOCK_FACTOR,
     JobResult,
     RaceJob,
-    job_car,
     open_entrant,
     progress_path,
+    resolve_car,
     weakest_mode,
     write_progress,
 )
@@ -105,8 +105,8 @@ def run_robustness_job(
     Path(job.out_dir).mkdir(parents=True, exist_ok=True)
     progress_file = progress_path(job)
     points = [dict(NOMINAL), *(dict(p) for p in job.robustness)]
-    policy, bundle = open_entrant(entrant, job, env_spec, tmp, bundles, pool)
-    car = job_car(job, [bundle.manifest.car] if bundle is not None else [])
+    car = resolve_car(job, env_spec, tmp, bundles)
+    policy, bundle = open_entrant(entrant, job, env_spec, tmp, bundles, pool, car)
     episodes: list[Episode] = []
     failure: PolicyFailure | None = None
     env = None

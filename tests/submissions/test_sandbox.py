@@ -6,6 +6,8 @@ from __future__ import annotations
 import json
 import logging
 import os
+import subprocess
+import sys
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -444,12 +446,33 @@ def test_action_problem_names_each_fault() -> None:
 
 
 def test_make_env_spec_matches_a_real_env() -> None:
-    for mode in ("continuous", "discrete"):
-        env = RacingEnv(track="oval", n_cars=2, action_mode=mode)
+    for mode, car in (
+        ("continuous", "f1tenth"),
+        ("discrete", "f1tenth"),
+        ("continuous", "deepracer"),
+    ):
+        env = RacingEnv(track="oval", n_cars=2, action_mode=mode, car=car)
         try:
-            assert env_spec_of(env) == make_env_spec(action_mode=mode)
+            assert env_spec_of(env) == make_env_spec(action_mode=mode, car=car)
+            assert env_spec_of(env)["car"] == car  # a policy is told which car it drives
         finally:
             env.close()
+
+
+def test_the_sandboxed_worker_starts_without_scipy_or_the_simulator() -> None:
+    # Every sandbox start imports submissions.worker; through submissions.errors ->
+    # tracks.errors, tracks/__init__ used to import scipy (about 1 s of CPU per sandbox).
+    # The package's names still load on use.
+    code = (
+        "import sys, submissions.worker\n"
+        "heavy = ('scipy', 'pybullet', 'torch', 'gymnasium', 'arena.', 'agents.', 'tracks.geo')\n"
+        "print(sorted(m for m in sys.modules if m.startswith(heavy)))\n"
+        "from tracks import Track, TrackError, load_track\n"
+        "import tracks.geometry\n"
+        "print(Track is tracks.geometry.Track and load_track('oval').length > 30)\n"
+    )
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert run.stdout.splitlines() == ["[]", "True"]
 
 
 def test_bundle_root_is_read_only_inside(make_python_bundle: MakeBundle) -> None:

@@ -21,7 +21,8 @@ default 64 lidar rays and 3 opponents), in this order::
   the car's frame (positions / 10 m, velocities / v_max); absent slots are all zeros.
 
 Action: ``[steer, throttle]``, two floats in [-1, 1]. ``steer`` is the fraction of full
-lock (0.42 rad), + turns left. ``throttle`` > 0 drives, < 0 brakes (then reverses). An
+lock (0.42 rad on the F1TENTH car, 30 degrees on the DeepRacer: ``env_spec["car"]`` says
+which you drive), + turns left. ``throttle`` > 0 drives, < 0 brakes (then reverses). An
 action outside the box, NaN, or of the wrong shape retires the car (``dnf``, ``invalid``).
 
 Race rules in short: laps count only through every checkpoint in order; ranked races add
@@ -35,6 +36,7 @@ import math
 import numpy as np
 
 LOOKAHEAD = (1.0, 2.0, 3.0, 4.0, 6.0, 8.0, 10.0)  # m: where the track-ahead points are
+CARS = {"f1tenth": (0.33, 0.42), "deepracer": (0.164, math.radians(30.0))}  # wheelbase m, lock rad
 MAX_RANGE = 10.0  # m: lidar range, the scale of the track-ahead points
 N_EGO = 7
 
@@ -44,13 +46,15 @@ class Policy:
 
     Args:
         env_spec: what the server races you in (``lidar_rays``, ``k_opponents``,
-            ``obs_shape``, ``action_mode``, ...); the defaults match the ranked races.
+            ``obs_shape``, ``action_mode``, ``car``: the car you drive, ``"f1tenth"`` or
+            ``"deepracer"``, ...); the defaults match the ranked races.
     """
 
     def __init__(self, env_spec: dict | None = None) -> None:
         spec = env_spec or {}
         self.n_rays = int(spec.get("lidar_rays", 64))
         self.k_opponents = int(spec.get("k_opponents", 3))
+        self.wheelbase, self.max_steer = CARS.get(spec.get("car") or "f1tenth", CARS["f1tenth"])
         self.top_speed = 0.55  # fraction of v_max on straights
         self.corner_speed = 0.25  # fraction of v_max in tight corners
 
@@ -64,10 +68,10 @@ class Policy:
         ahead = obs[start : start + 2 * len(LOOKAHEAD)].reshape(-1, 2) * MAX_RANGE
         speed = float(ego[0])
 
-        # Steer at the centre-line point 3 m ahead (pure pursuit, wheelbase 0.33 m).
+        # Steer at the centre-line point 3 m ahead (pure pursuit for this car's wheelbase).
         x, y = float(ahead[2, 0]), float(ahead[2, 1])
         dist = max(math.hypot(x, y), 1e-3)
-        steer = math.atan(2.0 * 0.33 * (y / dist) / dist) / 0.42
+        steer = math.atan(2.0 * self.wheelbase * (y / dist) / dist) / self.max_steer
 
         # How sharply the road bends 10 m ahead sets the target speed.
         far = ahead[-1]
