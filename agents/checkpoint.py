@@ -160,7 +160,8 @@ class CheckpointMeta:
         policy: the network architecture.
         hyperparameters: training hyperparameters (JSON values).
         training: training facts: ``steps``, ``wall_time_s``, ``tracks``, ``command``, ….
-        env_config: the env keyword arguments used in training (JSON values).
+        env_config: the env keyword arguments used in training (JSON values); ``car`` is the
+            car preset it drove (:mod:`arena.cars`; see :attr:`car`).
         packages: package versions at export (:func:`package_versions`).
         created: ISO 8601 UTC time of export.
         weights_sha256: hex SHA-256 of ``weights.safetensors`` (set by
@@ -197,6 +198,16 @@ class CheckpointMeta:
         if self.action_space["type"] == "Discrete":
             return int(self.action_space["n"])
         return int(math.prod(self.action_space["shape"]))
+
+    @property
+    def car(self) -> str | dict[str, Any]:
+        """The car the policy was trained with: ``env_config["car"]``, a preset name of
+        :mod:`arena.cars` or a custom car's parameters; ``"f1tenth"`` (the default car) when
+        the checkpoint names none, as every one written before car presets existed."""
+        from arena.cars import DEFAULT_CAR  # noqa: PLC0415 - the car module loads the simulator
+
+        car = self.env_config.get("car", DEFAULT_CAR)
+        return car if isinstance(car, str | dict) else str(car)
 
     def to_dict(self) -> dict[str, Any]:
         """The ``meta.json`` document (plain JSON values)."""
@@ -877,7 +888,9 @@ def export_sb3(
         path: destination zip.
         name: the policy's display name.
         env_config: the env keyword arguments it was trained with (``obs_mode`` defaults to
-            ``"vector"``; ``action_mode`` to the one the action space implies).
+            ``"vector"``; ``action_mode`` to the one the action space implies; ``car``, a
+            preset name or :class:`arena.sim.CarParams`, is recorded as the preset's name, a
+            custom car as its parameters).
         hyperparameters: recorded as given, over the model's own (learning rate, n_steps, …).
         training: facts about the run (``steps``, ``wall_time_s``, ``tracks``, ``command``);
             ``steps`` defaults to ``model.num_timesteps``.
@@ -887,8 +900,8 @@ def export_sb3(
         ``path`` as a :class:`Path`.
 
     Raises:
-        CheckpointError: the model is not an MLP actor-critic, or its spaces disagree with
-            ``env_config``.
+        CheckpointError: the model is not an MLP actor-critic, its spaces disagree with
+            ``env_config``, or its ``car`` is neither a preset name nor a CarParams.
     """
     policy = model.policy
     arch = _architecture(policy, include_value)
@@ -898,6 +911,14 @@ def export_sb3(
     action_space = space_to_json(model.action_space)
     implied = "discrete" if action_space["type"] == "Discrete" else "continuous"
     config = _jsonable(dict(env_config))
+    if "car" in env_config:
+        from arena.cars import CarError, car_name, car_params  # noqa: PLC0415 - loads the simulator
+
+        try:
+            params = car_params(env_config["car"])
+        except CarError as err:
+            raise CheckpointError(f"env_config: {err}") from None
+        config["car"] = car_name(params) or _jsonable(params)
     action_mode = config.get("action_mode", implied)
     if action_mode != implied:
         raise CheckpointError(

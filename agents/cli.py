@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -30,7 +31,10 @@ def register(sub: Any) -> None:
         "race line) or checkpoint paths",
     )
     p.add_argument(
-        "--car", default="f1tenth", help="car preset: f1tenth (1/10) or deepracer (1/18)"
+        "--car",
+        default="f1tenth",
+        help="car preset: f1tenth (1/10) or deepracer (1/18); a checkpoint trained with "
+        "another car races anyway, with a one-line warning",
     )
     p.add_argument("--laps", type=int, default=2, help="race distance in laps")
     p.add_argument("--seed", type=int, default=0, help="seed for the grid and the policies")
@@ -86,6 +90,12 @@ def register(sub: Any) -> None:
     e.add_argument("--out", type=Path, required=True, help="checkpoint to write")
     e.add_argument("--name", default=None, help="policy name (default: the file stem)")
     e.add_argument(
+        "--car",
+        default=None,
+        help="the car preset it was trained with, recorded in the checkpoint (default: none "
+        "recorded, which reads as f1tenth)",
+    )
+    e.add_argument(
         "--trusted",
         action="store_true",
         help="confirm the SB3 file is your own: loading it runs its pickled code",
@@ -109,7 +119,8 @@ def race_command(args: argparse.Namespace) -> int:
 
     params = car_params(args.car)
     track = load_track(args.track)
-    policies = [load_policy(n, trusted=args.trusted, params=params, track=track) for n in names]
+    with one_line_warnings():  # a checkpoint of another car (CarMismatchWarning), say
+        policies = [load_policy(n, trusted=args.trusted, params=params, track=track) for n in names]
     for i, pol in enumerate(policies):  # same baseline twice: tell them apart in the table
         if names.count(names[i]) > 1:
             pol.name = f"{pol.name}#{i}"
@@ -154,6 +165,19 @@ def race_command(args: argparse.Namespace) -> int:
 
 
 @contextmanager
+def one_line_warnings() -> Iterator[None]:
+    """Inside: every warning is printed as one line on stderr, ``slipstream: warning: …``
+    (Python's default adds the file, line and source of the code that warned)."""
+
+    def show(message: Warning | str, *_: Any, **__: Any) -> None:
+        print(f"slipstream: warning: {message}", file=sys.stderr)
+
+    with warnings.catch_warnings():  # restores the default display on the way out
+        warnings.showwarning = show
+        yield
+
+
+@contextmanager
 def _watching(args: argparse.Namespace, policies: list[Any], console: Any) -> Iterator[None]:
     """With ``--watch``: a live viser scene that draws every recorded frame of the race."""
     if not args.watch:
@@ -184,7 +208,10 @@ def export_command(args: argparse.Namespace) -> int:
     """Run ``slipstream export``."""
     from agents.loading import convert_sb3
 
-    out = convert_sb3(args.source, args.out, name=args.name, trusted=args.trusted)
+    env_config = {} if args.car is None else {"car": args.car}
+    out = convert_sb3(
+        args.source, args.out, name=args.name, trusted=args.trusted, env_config=env_config
+    )
     print(f"wrote {out}")
     return 0
 

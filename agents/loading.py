@@ -16,12 +16,19 @@ and TorchScript files are code: load them only from your own disk (``trusted=Tru
 :class:`UntrustedCodeWarning`); anything uploaded is opened only inside the sandbox
 (:mod:`submissions`). :func:`convert_sb3` turns your own SB3 zip into a Slipstream checkpoint
 once, after which it loads anywhere.
+
+A Slipstream checkpoint records the car it was trained with (``meta.env_config["car"]``;
+none: the default ``f1tenth``). Loaded for a race with another car (``load_policy(...,
+params=)``), it still loads, with a one-line :class:`CarMismatchWarning` naming both cars:
+a policy drives the car it learned, and a 1/10-car policy on the 1/18 DeepRacer car (or the
+other way round) mostly leaves the road.
 """
 
 from __future__ import annotations
 
 import warnings
 import zipfile
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -33,10 +40,12 @@ from agents.checkpoint import (
     META_MEMBER,
     WEIGHTS_MEMBER,
     CheckpointError,
+    CheckpointMeta,
     TorchMLPPolicy,
     looks_like_pickle,
 )
 from agents.policy import Policy
+from arena.cars import CAR_PRESETS, car_name
 from arena.observations import ObservationLayout
 from arena.sim import CarParams
 from tracks import Track
@@ -52,6 +61,29 @@ EXPORT_HINT = (
 
 class UntrustedCodeWarning(UserWarning):
     """A file that runs code when loaded (SB3 zip, TorchScript) is being loaded."""
+
+
+class CarMismatchWarning(UserWarning):
+    """A checkpoint trained with one car is raced with another."""
+
+
+def car_mismatch(meta: CheckpointMeta, params: CarParams) -> str | None:
+    """One line naming both cars when the car ``meta`` was trained with
+    (:attr:`agents.checkpoint.CheckpointMeta.car`) is not ``params``; None when it is."""
+    trained, raced = meta.car, car_name(params)
+    if isinstance(trained, dict):  # a custom car's parameters
+        if raced is None and trained == asdict(params):
+            return None
+        label = "a custom"
+    elif trained == raced:
+        return None
+    else:  # a preset name, or any text a meta.json holds: shown quoted, in one line
+        label = "the " + (trained if trained in CAR_PRESETS else repr(trained[:40]))
+    return (
+        f"policy {meta.name[:60]!r} was trained with {label} car but races the "
+        f"{raced or 'custom'} car: expect it to leave the road (train one for this car: "
+        f"slipstream train --car {raced or '<car>'})"
+    )
 
 
 def detect_format(path: Path) -> str:
@@ -109,7 +141,9 @@ def load_policy(
         path_or_name: ``pursuit``, ``gap``, ``random``, or a path to a Slipstream checkpoint,
             an SB3 zip or a TorchScript file.
         layout: observation layout for the baselines (default: 64 rays, 3 opponents).
-        params: car parameters for the baselines (default: ``CarParams()``).
+        params: the race's car: the baselines drive it (default: ``CarParams()``), and a
+            Slipstream checkpoint trained with another car loads with a
+            :class:`CarMismatchWarning` (:func:`car_mismatch`).
         trusted: allow files that run code when loaded (SB3 zips, TorchScript). Only for
             your own local files; an :class:`UntrustedCodeWarning` is still emitted.
         track: the race's track, for baselines that follow it (``raceline`` needs one with
@@ -128,7 +162,11 @@ def load_policy(
     path = Path(path_or_name)
     kind = detect_format(path)
     if kind == "slipstream":
-        return TorchMLPPolicy.from_file(path)
+        policy = TorchMLPPolicy.from_file(path)
+        mismatch = None if params is None else car_mismatch(policy.meta, params)
+        if mismatch is not None:
+            warnings.warn(mismatch, CarMismatchWarning, stacklevel=2)
+        return policy
     if kind == "sb3":
         if not trusted:
             raise CheckpointError(

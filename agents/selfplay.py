@@ -211,15 +211,20 @@ class Procedural:
         hairpin: range of the hairpin radius, m, of real-track-like generated tracks
             (``generate_track(hairpin=...)``: bends tighter than the road's half-width, the
             inside narrowed as the importers narrow real files); None: ordinary tracks.
+        scale: every generated track is scaled by this (:meth:`tracks.Track.scaled`; named
+            ``random:…@<scale>``) after it is generated with the ranges above, which are
+            therefore for the 1/10 car: 0.52 gives roads for the 1/18 DeepRacer car.
     """
 
     share: float = 0.0
     length: tuple[float, float] = (60.0, 160.0)
     difficulty: tuple[float, float] = (0.2, 0.8)
     hairpin: tuple[float, float] | None = None
+    scale: float = 1.0
 
     def draw(self, rng: np.random.Generator, attempts: int = 20) -> Track:
-        """A generated track with its seed, length, difficulty (and hairpin) drawn from ``rng``.
+        """A generated track with its seed, length, difficulty (and hairpin) drawn from ``rng``,
+        scaled by :attr:`scale`.
 
         Raises:
             PolicyError: the generator gave up on ``attempts`` draws in a row (ranges too
@@ -231,7 +236,8 @@ class Procedural:
             difficulty = float(rng.uniform(*self.difficulty))
             hairpin = None if self.hairpin is None else float(rng.uniform(*self.hairpin))
             try:
-                return generate_track(seed, length, difficulty, hairpin)
+                track = generate_track(seed, length, difficulty, hairpin)
+                return track if self.scale == 1.0 else track.scaled(self.scale)
             except TrackError:
                 continue
         raise PolicyError(

@@ -21,6 +21,12 @@ What a run does:
    :mod:`agents.checkpoint`), loads it back with :func:`agents.loading.load_policy` and races
    it against pursuit; writes ``<out>/<run>/summary.json``.
 
+**Car.** Every car of every training and evaluation race is the ``car`` preset
+(:mod:`arena.cars`), and every track — listed, evaluation or generated — is scaled by the
+car's length over the F1TENTH car's (:func:`track_scale`: 0.52 for ``deepracer``), so the
+1/18 car trains on roads its size; a track named ``NAME@<factor>`` keeps the scale it names.
+The checkpoint records the car (``env_config["car"]``).
+
 **Clean lap.** In the *solo* evaluation race (the policy alone on the track, grid start,
 deterministic actions, ``eval_laps`` laps) the car completes every lap — status
 ``finished``, so no DNF (no crash out, no time-out, no stuck or off-track retirement) — and
@@ -175,6 +181,11 @@ class TrainArgs:
     init_from: Path | None = None
     """start from the policy weights of this Slipstream checkpoint (fine-tuning; the value
     network starts fresh)"""
+    car: str = "f1tenth"
+    """car preset of every car (arena.cars): f1tenth (1/10) or deepracer (1/18). Every
+    training, evaluation and generated track is scaled by the car's length over the f1tenth
+    car's (0.52 for deepracer; a track named NAME@<factor> keeps that scale), and the
+    checkpoint records the car"""
 
 
 # ---- argparse from the dataclass ------------------------------------------------------------
@@ -247,10 +258,12 @@ def parse_args(argv: Sequence[str] | None = None) -> TrainArgs:
 def _check(args: TrainArgs) -> None:
     """Raise :class:`PolicyError` on settings that cannot work."""
     from agents.selfplay import parse_mix  # noqa: PLC0415 - heavy, imported on use
+    from arena.cars import car_params  # noqa: PLC0415 - heavy, imported on use
     from tracks import load_track  # noqa: PLC0415 - heavy, imported on use
 
-    for name in [*args.tracks, *args.eval_tracks]:
-        load_track(name)  # raises TrackError with a clear message
+    car_params(args.car)  # raises CarError naming the presets
+    for name in training_tracks(args, [*args.tracks, *args.eval_tracks]):
+        load_track(name)  # raises TrackError with a clear message (a scale too small, too)
     positive = (
         "n_cars",
         "n_learners",
@@ -314,7 +327,8 @@ def evaluate(
         tracks: anything :func:`tracks.load_track` takes.
         laps: laps per race.
         seed: seeds the races.
-        env_kwargs: the env arguments the policy was trained with.
+        env_kwargs: the env arguments the policy was trained with (``car``: pursuit drives
+            that car too).
         reverse: also race every track in the other direction (key ``"<track>:reverse"``).
         both_grids: two races against pursuit per track instead of one.
 
@@ -326,13 +340,14 @@ def evaluate(
         ``pursuit`` car of each duel.
     """
     from agents.baselines import make_baseline  # noqa: PLC0415 - heavy, imported on use
+    from arena.cars import DEFAULT_CAR, car_params  # noqa: PLC0415 - heavy, imported on use
     from arena.observations import ObservationLayout  # noqa: PLC0415 - heavy, imported on use
     from arena.race import CarResult, run_race  # noqa: PLC0415 - heavy, imported on use
     from tracks import load_track  # noqa: PLC0415 - heavy, imported on use
 
     kw = dict(env_kwargs or {})
     layout = ObservationLayout(int(kw.get("lidar_rays", 64)), int(kw.get("k_opponents", 3)))
-    pursuit = make_baseline("pursuit", layout)
+    pursuit = make_baseline("pursuit", layout, car_params(kw.get("car", DEFAULT_CAR)))
 
     def car(c: CarResult) -> dict[str, Any]:
         return {
@@ -568,15 +583,17 @@ def _batch_vec_env(
     track, plus ``procedural_groups(args)`` groups on generated tracks (redrawn during
     training by :func:`procedural_callback`), each also reversed with ``--randomise``;
     ``uncertainty`` (an :class:`arena.uncertainty.UncertaintyConfig`) goes to every group.
+    Every car is ``args.car`` and every track is scaled for it (:func:`training_tracks`).
     """
     from arena.batch.vec_env import BatchVecEnv  # noqa: PLC0415 - heavy, imported on use
+    from arena.cars import car_params  # noqa: PLC0415 - heavy, imported on use
 
     seed = args.seed if seed is None else seed
     groups = procedural_groups(args) if procedural else 0
     rng = np.random.default_rng([seed, 7])
     draw = procedural_of(args).draw
     generated = [draw(rng) for _ in range(groups)]
-    fixed = [] if args.procedural >= 1.0 and groups else list(args.tracks)
+    fixed = [] if args.procedural >= 1.0 and groups else training_tracks(args)
     return BatchVecEnv(
         [*fixed, *generated],
         n_envs=args.n_envs if n_envs is None else n_envs,
@@ -588,7 +605,11 @@ def _batch_vec_env(
         reward_scale=args.reward_scale,
         dnf_penalty=args.dnf_penalty,
         seed=seed,
-        sim_kwargs={"uncertainty": uncertainty, "end_on_wall": args.wall_ends_episode},
+        sim_kwargs={
+            "uncertainty": uncertainty,
+            "end_on_wall": args.wall_ends_episode,
+            "car_params": car_params(args.car),
+        },
     )
 
 
@@ -623,7 +644,41 @@ def procedural_of(args: TrainArgs) -> Any:
             if args.procedural_hairpin
             else None
         ),
+        scale=track_scale(args.car),
     )
+
+
+def track_scale(car: str) -> float:
+    """How much smaller (or larger) roads are for ``car``: its length over the F1TENTH car's
+    (the built-in tracks and the generator's ranges are drawn for the 1/10 car).
+
+    >>> track_scale("f1tenth"), track_scale("deepracer")
+    (1.0, 0.52)
+    """
+    from arena.cars import car_params  # noqa: PLC0415 - heavy, imported on use
+    from arena.sim import CarParams  # noqa: PLC0415 - heavy, imported on use
+
+    return car_params(car).length / CarParams().length
+
+
+def training_tracks(args: TrainArgs, names: Sequence[str] | None = None) -> list[str]:
+    """``names`` (default: ``args.tracks``) as the names of the tracks scaled for ``args.car``
+    (:func:`track_scale`): ``NAME@<factor>``; a name that already ends in ``@<factor>``, and
+    every name when the factor is 1, stays as it is.
+
+    >>> training_tracks(TrainArgs(car="deepracer"), ["oval", "random:7", "carrera.json@1"])
+    ['oval@0.52', 'random:7@0.52', 'carrera.json@1']
+    """
+    from tracks.geometry import short_float  # noqa: PLC0415 - heavy, imported on use
+    from tracks.library import split_scale  # noqa: PLC0415 - heavy, imported on use
+
+    factor = track_scale(args.car)
+    names = list(args.tracks if names is None else names)
+    if factor == 1.0:
+        return names
+    return [
+        n if split_scale(str(n))[1] is not None else f"{n}@{short_float(factor)}" for n in names
+    ]
 
 
 def procedural_callback(args: TrainArgs, vec_env: Any) -> Any:
@@ -671,6 +726,7 @@ def procedural_callback(args: TrainArgs, vec_env: Any) -> Any:
                     view, old.n_envs, old.n_cars, old.laps, device=old.device,
                     random_starts=old.random_starts, seed=int(rng.integers(0, 2**31 - 1)),
                     uncertainty=old.uncertainty, end_on_wall=old.rules.end_on_wall,
+                    car_params=old.params,
                 )  # fmt: skip
                 new.nature = old.nature
                 vec_env.sims[k] = new
@@ -712,6 +768,7 @@ def main(args: TrainArgs) -> dict[str, Any]:
         SelfPlayVecEnv,
         parse_mix,
     )
+    from arena.cars import car_name, car_params  # noqa: PLC0415 - heavy, imported on use
 
     run = run_name_for(args)
     run_dir = Path(args.out) / run
@@ -719,8 +776,9 @@ def main(args: TrainArgs) -> dict[str, Any]:
     tb_dir = Path(args.tensorboard_dir) if args.tensorboard_dir else run_dir / "tb"
     curve_path = run_dir / "curve.jsonl"
     curve_path.write_text("", encoding="utf-8")
-    eval_tracks = list(args.eval_tracks or args.tracks)
-    env_kwargs: dict[str, Any] = {}  # the env defaults: vector obs, continuous actions
+    eval_tracks = training_tracks(args, args.eval_tracks or args.tracks)
+    # The env defaults (vector obs, continuous actions) with the run's car, by preset name.
+    env_kwargs: dict[str, Any] = {"car": car_name(car_params(args.car))}
     # Training envs may add model uncertainty; evaluation and the checkpoint stay nominal.
     train_env_kwargs = dict(env_kwargs)
     if args.uncertainty != "nominal":
@@ -741,7 +799,7 @@ def main(args: TrainArgs) -> dict[str, Any]:
         vec_env = _batch_vec_env(args, train_env_kwargs.get("uncertainty"))
     else:
         vec_env = SelfPlayVecEnv(
-            args.tracks,
+            training_tracks(args),
             n_envs=args.n_envs,
             n_cars=args.n_cars,
             n_learners=args.n_learners,
@@ -804,6 +862,8 @@ def main(args: TrainArgs) -> dict[str, Any]:
         "opponent_mix": args.opponent_mix,
         "uncertainty": args.uncertainty,
         "backend": args.backend,
+        "car": env_kwargs["car"],
+        "track_scale": track_scale(args.car),
     }
     if args.init_from is not None:
         from agents.robustness import load_weights  # noqa: PLC0415 - heavy, imported on use
