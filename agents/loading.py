@@ -86,6 +86,22 @@ def car_mismatch(meta: CheckpointMeta, params: CarParams) -> str | None:
     )
 
 
+def checkpoint_car_mismatch(path: Path, car: str | CarParams) -> str | None:
+    """:func:`car_mismatch` for the Slipstream checkpoint at ``path`` raced with ``car`` (a
+    preset name or CarParams). Only ``meta.json`` and the tensors are read, with the strict
+    code-free reader; a file that is not a readable Slipstream checkpoint gives None (whatever
+    loads it says what is wrong).
+    """
+    from agents.checkpoint import read_checkpoint  # noqa: PLC0415 - only for this check
+    from arena.cars import car_params  # noqa: PLC0415 - only for this check
+
+    try:
+        meta, _ = read_checkpoint(path)
+    except CheckpointError:
+        return None
+    return car_mismatch(meta, car_params(car))
+
+
 def detect_format(path: Path) -> str:
     """``"slipstream"``, ``"sb3"`` or ``"torchscript"``, from the zip's member names only.
 

@@ -154,7 +154,7 @@ def wrap_checkpoint(
 
     An SB3 zip is converted first (:func:`agents.loading.convert_sb3`, ``trusted`` needed);
     a Slipstream checkpoint is read with the strict, code-free reader to take its action
-    mode and env version.
+    mode, env version and car (the manifest declares the car it was trained with).
 
     Raises:
         agents.checkpoint.CheckpointError: not a checkpoint we can read or convert.
@@ -162,7 +162,14 @@ def wrap_checkpoint(
     """
     from agents.checkpoint import CheckpointError, read_checkpoint  # noqa: PLC0415 - heavy
     from agents.loading import convert_sb3, detect_format  # noqa: PLC0415
-    from submissions.bundle import EnvSpec, Manifest, make_bundle, open_bundle  # noqa: PLC0415
+    from submissions.bundle import (  # noqa: PLC0415
+        DEFAULT_CAR,
+        EnvSpec,
+        Manifest,
+        car_names,
+        make_bundle,
+        open_bundle,
+    )
 
     fmt = detect_format(checkpoint)
     with tempfile.TemporaryDirectory(prefix="slipstream-wrap-") as tmp:
@@ -177,6 +184,8 @@ def wrap_checkpoint(
             )
         meta, _ = read_checkpoint(source)
         name = name or meta.name
+        # The car it learned (a custom car's or an unknown name: the default, and races warn).
+        car = meta.car if isinstance(meta.car, str) and meta.car in car_names() else DEFAULT_CAR
         keys = ("lidar_rays", "k_opponents")
         env: dict[str, int] = {k: int(meta.env_config[k]) for k in keys if k in meta.env_config}
         manifest = Manifest(
@@ -189,6 +198,7 @@ def wrap_checkpoint(
             action_mode=meta.action_mode,
             env=env,
             description=f"{meta.algorithm} checkpoint {checkpoint.name}",
+            car=car,
         )
         out = out or Path(f"{name}-bundle.zip")
         make_bundle(out, manifest, {"policy.zip": source})

@@ -15,7 +15,12 @@ import pytest
 pytest.importorskip("stable_baselines3")
 
 from agents.checkpoint import CheckpointError, read_checkpoint
-from agents.loading import CarMismatchWarning, car_mismatch, load_policy
+from agents.loading import (
+    CarMismatchWarning,
+    car_mismatch,
+    checkpoint_car_mismatch,
+    load_policy,
+)
 from agents.selfplay import SelfPlayVecEnv
 from agents.train import (
     TrainArgs,
@@ -99,19 +104,25 @@ def test_both_backends_put_the_car_on_scaled_tracks() -> None:
         bullet.close()
 
 
-def test_tiny_deepracer_batch_run_records_the_car_and_races_it(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
-) -> None:
-    from leaderboard.cli import main as slipstream
-
-    summary = main(
+@pytest.fixture(scope="module")
+def deepracer_run(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    """The summary of a tiny ``--car deepracer --backend batch`` run (2,048 steps)."""
+    return main(
         TrainArgs(
             backend="batch", car="deepracer", tracks=["oval"], n_cars=2, n_envs=8,
             total_timesteps=2048, n_steps=64, batch_size=1024, n_epochs=2, net_arch=[16, 16],
-            wall_ends_episode=True, eval_every=0, out=tmp_path, run_name="dr",
-            progress_bar=False, seed=3,
+            wall_ends_episode=True, eval_every=0, out=tmp_path_factory.mktemp("runs"),
+            run_name="dr", progress_bar=False, seed=3,
         )
     )  # fmt: skip
+
+
+def test_tiny_deepracer_batch_run_records_the_car_and_races_it(
+    deepracer_run: dict[str, Any], capsys: pytest.CaptureFixture[str]
+) -> None:
+    from leaderboard.cli import main as slipstream
+
+    summary = deepracer_run
     meta, _ = read_checkpoint(summary["policy"])
     assert meta.env_config["car"] == "deepracer" and meta.car == "deepracer"
     assert meta.hyperparameters["track_scale"] == pytest.approx(SCALE)
@@ -136,8 +147,25 @@ def test_tiny_deepracer_batch_run_records_the_car_and_races_it(
     (line,) = [ln for ln in err.splitlines() if "warning" in ln]
     assert line.startswith("slipstream: warning: policy 'dr' was trained with the deepracer car")
     assert "races the f1tenth car" in line
-    recorded = json.loads((tmp_path / "dr" / "summary.json").read_text())
+    recorded = json.loads((Path(summary["run_dir"]) / "summary.json").read_text())
     assert recorded["args"]["car"] == "deepracer"
+
+
+def test_a_wrapped_deepracer_checkpoint_declares_its_car(
+    deepracer_run: dict[str, Any], tmp_path: Path
+) -> None:
+    from submissions.bundle import EnvSpec, open_bundle
+    from submissions.cli_bundle import wrap_checkpoint
+
+    policy = Path(deepracer_run["policy"])
+    out, _ = wrap_checkpoint(policy, tmp_path / "dr.zip")
+    bundle = open_bundle(out, tmp_path / "open", env=EnvSpec.current())
+    assert bundle.manifest.car == "deepracer"  # so its ranked races run the DeepRacer car
+    # What `slipstream evaluate` says of a bundle whose manifest names another car.
+    assert checkpoint_car_mismatch(bundle.entry_path, "deepracer") is None
+    message = checkpoint_car_mismatch(bundle.entry_path, "f1tenth")
+    assert message is not None and "deepracer car but races the f1tenth car" in message
+    assert checkpoint_car_mismatch(tmp_path / "dr.zip", "f1tenth") is None  # not a checkpoint
 
 
 def test_a_checkpoint_without_a_car_is_the_default_car() -> None:
