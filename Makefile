@@ -64,8 +64,9 @@ bench: install
 
 # Mutation testing of the critical modules ([tool.mutmut] in pyproject.toml): slow, not part of
 # `make test`. Module by module (shortest first), one child process (the machine is shared;
-# MUTATE_JOBS=2 on a quiet one); results accumulate in mutants/ (mutmut re-tests only what
-# changed since), `rm -rf mutants` starts afresh. The sandbox is scoped to its policy decisions
+# MUTATE_JOBS=2 on a quiet one). Each run re-tests every mutant it names; mutants/ keeps the
+# results (and mutmut's test timings) for the report, `rm -rf mutants` starts afresh.
+# MUTATE="arena.rewards.*" runs one module. The sandbox is scoped to its policy decisions
 # (which mode, which limits, which identity and paths the fallback gets): its mechanisms are
 # pinned by the hostile suite, whose sandboxed races take seconds per mutant. Then the report:
 # the score per module and every survivor with its verdict (bench/mutation_verdicts.json).
