@@ -74,6 +74,7 @@ MAX_ATTEMPTS = 20  # fresh shapes (each tried at every calming level) before giv
 # half-width and than the car's 0.74 m full-lock radius; their importer narrows the inside.
 HAIRPIN_RANGE = (0.3, 5.0)  # m: the smallest bend radius a hairpin track may ask for
 HAIRPIN_SHARE = 0.35  # share of a hairpin track's bends drawn near the hairpin radius
+HAIRPIN_HALF_WIDTH = 1.1  # m: the F1TENTH race tracks' half-width, before narrowing
 
 
 def _lerp(range_: tuple[float, float], difficulty: float) -> float:
@@ -243,7 +244,9 @@ def _attempt(
     rng: np.random.Generator, seed: int, length: float, difficulty: float, hairpin: float | None
 ) -> Track | None:
     """One candidate circuit, or None when it fails a check even when calmed down."""
-    half = 0.5 * road_width(difficulty)
+    # Hairpin tracks have the F1TENTH tracks' road; difficulty then sets only the corners, so
+    # an easy one has long straights into its hairpins, as real circuits do.
+    half = 0.5 * road_width(difficulty) if hairpin is None else HAIRPIN_HALF_WIDTH
     shape = _Shape.draw(rng, length, difficulty)
     min_radius = BEND_RADIUS_MIN * half if hairpin is None else hairpin
     max_radius = max(_lerp(BEND_RADIUS_MAX, difficulty), 1.2 * min_radius)
@@ -328,11 +331,12 @@ def generate_track(
         seed: non-negative integer; the only source of randomness.
         length: lap length along the centre line, m, in ``[30, 300]``.
         difficulty: ``0`` (few gentle corners, 4 m road) to ``1`` (many tight corners, 2 m road).
-        hairpin: real-track-like tightness: about a third of the bends are drawn down to this
-            radius (m), tighter than the half-width (as on the F1TENTH race tracks, whose
-            hairpins are 0.4-1.1 m), and the inside of the road is narrowed there as the
-            importers narrow real files (:func:`tracks.validation.fit_widths`). None: every
-            bend is at least 1.7 half-widths and the road keeps its width.
+        hairpin: real-track-like tightness: the F1TENTH race tracks' 2.2 m road (difficulty
+            then sets only how many corners and how twisty), about a third of the bends drawn
+            down to this radius (m), tighter than the half-width (those tracks' hairpins are
+            0.4-1.1 m), and the inside of the road narrowed there as the importers narrow
+            real files (:func:`tracks.validation.fit_widths`). None: every bend is at least
+            1.7 half-widths and the road keeps its width.
 
     Returns:
         A validated :class:`Track` named ``random:<seed>[:options]`` with its start line on the

@@ -162,7 +162,7 @@ def test_bad_arguments_say_what_is_wrong(
 def test_hairpin_tracks_are_as_tight_as_real_ones_and_still_valid(seed: int) -> None:
     track = generate_track(seed, 200.0, 0.8, hairpin=0.6)
     radius = 1.0 / np.abs(track.curvature)
-    half = 0.5 * 2.4  # road_width(0.8) / 2
+    half = 1.1  # the F1TENTH half-width of hairpin tracks
     # Bends tighter than the half-width (the ordinary generator keeps >= 1.7 half-widths)...
     assert radius.min() < 0.8 < half
     assert radius.min() > 0.45  # ...but not much tighter than asked (arcs, then the spline)
