@@ -677,8 +677,10 @@ def rarl_callback(
             )
         )  # fmt: skip
     else:
+        from agents.train import training_tracks  # noqa: PLC0415 - heavy
+
         nature_env = SelfPlayVecEnv(
-            args.tracks,
+            training_tracks(args),
             n_envs=max(1, args.n_envs // 2),
             n_cars=args.n_cars,
             n_learners=args.n_learners,

@@ -211,6 +211,8 @@ class Procedural:
         hairpin: range of the hairpin radius, m, of real-track-like generated tracks
             (``generate_track(hairpin=...)``: bends tighter than the road's half-width, the
             inside narrowed as the importers narrow real files); None: ordinary tracks.
+        width: range of the total road width, m, before scaling (``generate_track(width=)``);
+            None: the width difficulty (or hairpin) gives.
         scale: every generated track is scaled by this (:meth:`tracks.Track.scaled`; named
             ``random:…@<scale>``) after it is generated with the ranges above, which are
             therefore for the 1/10 car: 0.52 gives roads for the 1/18 DeepRacer car.
@@ -220,6 +222,7 @@ class Procedural:
     length: tuple[float, float] = (60.0, 160.0)
     difficulty: tuple[float, float] = (0.2, 0.8)
     hairpin: tuple[float, float] | None = None
+    width: tuple[float, float] | None = None
     scale: float = 1.0
 
     def draw(self, rng: np.random.Generator, attempts: int = 20) -> Track:
@@ -235,8 +238,9 @@ class Procedural:
             length = float(rng.uniform(*self.length))
             difficulty = float(rng.uniform(*self.difficulty))
             hairpin = None if self.hairpin is None else float(rng.uniform(*self.hairpin))
+            width = None if self.width is None else float(rng.uniform(*self.width))
             try:
-                track = generate_track(seed, length, difficulty, hairpin)
+                track = generate_track(seed, length, difficulty, hairpin, width)
                 return track if self.scale == 1.0 else track.scaled(self.scale)
             except TrackError:
                 continue

@@ -125,6 +125,10 @@ class TrainArgs:
     """hairpin radius range of generated tracks, m (min max): real-track-like tightness, bends
     tighter than the half-width with the inside narrowed (tracks.generator hairpin=; the
     F1TENTH race tracks have 0.4-1.1 m); empty: ordinary generated tracks"""
+    procedural_width: list[float] = field(default_factory=list)
+    """total road width range of generated tracks, m, before they are scaled to the car (min
+    max; e.g. 1.3 1.8 with --car deepracer gives DeepRacer's 0.7-0.95 m roads); empty: the
+    width the difficulty (or hairpin) gives"""
     train_laps: int = 1
     """laps per training episode"""
     wall_ends_episode: bool = False
@@ -282,9 +286,10 @@ def _check(args: TrainArgs) -> None:
             raise PolicyError(f"{name} must be at least 1, got {getattr(args, name)}")
     if args.n_learners > args.n_cars:
         raise PolicyError(f"n_learners ({args.n_learners}) exceeds n_cars ({args.n_cars})")
-    for name in ("procedural_length", "procedural_difficulty", "procedural_hairpin"):
+    optional = ("procedural_hairpin", "procedural_width")
+    for name in ("procedural_length", "procedural_difficulty", *optional):
         pair = getattr(args, name)
-        if (pair or name != "procedural_hairpin") and (len(pair) != 2 or pair[0] > pair[1]):
+        if (pair or name not in optional) and (len(pair) != 2 or pair[0] > pair[1]):
             raise PolicyError(f"{name} takes two numbers, min then max; got {pair}")
     if args.wall_ends_episode and args.backend != "batch":
         raise PolicyError("wall_ends_episode is for --backend batch (pybullet walls stop a car)")
@@ -644,6 +649,9 @@ def procedural_of(args: TrainArgs) -> Any:
             if args.procedural_hairpin
             else None
         ),
+        width=(
+            (args.procedural_width[0], args.procedural_width[1]) if args.procedural_width else None
+        ),
         scale=track_scale(args.car),
     )
 
@@ -855,6 +863,7 @@ def main(args: TrainArgs) -> dict[str, Any]:
         "procedural_length": args.procedural_length,
         "procedural_difficulty": args.procedural_difficulty,
         "procedural_hairpin": args.procedural_hairpin,
+        "procedural_width": args.procedural_width,
         "wall_ends_episode": args.wall_ends_episode,
         "n_envs": args.n_envs,
         "n_cars": args.n_cars,

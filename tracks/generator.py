@@ -75,6 +75,7 @@ MAX_ATTEMPTS = 20  # fresh shapes (each tried at every calming level) before giv
 HAIRPIN_RANGE = (0.3, 5.0)  # m: the smallest bend radius a hairpin track may ask for
 HAIRPIN_SHARE = 0.35  # share of a hairpin track's bends drawn near the hairpin radius
 HAIRPIN_HALF_WIDTH = 1.1  # m: the F1TENTH race tracks' half-width, before narrowing
+WIDTH_RANGE = (1.0, 6.0)  # m: total road widths ``width=`` may ask for
 
 
 def _lerp(range_: tuple[float, float], difficulty: float) -> float:
@@ -88,7 +89,13 @@ def road_width(difficulty: float) -> float:
     return _lerp((WIDTH_EASY, WIDTH_HARD), difficulty)
 
 
-def random_spec(seed: int, length: float, difficulty: float, hairpin: float | None = None) -> str:
+def random_spec(
+    seed: int,
+    length: float,
+    difficulty: float,
+    hairpin: float | None = None,
+    width: float | None = None,
+) -> str:
     """The ``random:`` name that :func:`tracks.load_track` resolves to this track.
 
     >>> random_spec(7, 60.0, 0.8)
@@ -97,6 +104,8 @@ def random_spec(seed: int, length: float, difficulty: float, hairpin: float | No
     'random:7'
     >>> random_spec(7, 200.0, 0.8, hairpin=0.6)
     'random:7:length=200,difficulty=0.8,hairpin=0.6'
+    >>> random_spec(7, 120.0, 0.5, hairpin=0.6, width=1.5)
+    'random:7:length=120,hairpin=0.6,width=1.5'
     """
     opts = []
     if length != DEFAULT_LENGTH:
@@ -105,10 +114,14 @@ def random_spec(seed: int, length: float, difficulty: float, hairpin: float | No
         opts.append(f"difficulty={short_float(difficulty)}")
     if hairpin is not None:
         opts.append(f"hairpin={short_float(hairpin)}")
+    if width is not None:
+        opts.append(f"width={short_float(width)}")
     return f"random:{seed}" + (":" + ",".join(opts) if opts else "")
 
 
-def _check_arguments(seed: int, length: float, difficulty: float, hairpin: float | None) -> None:
+def _check_arguments(
+    seed: int, length: float, difficulty: float, hairpin: float | None, width: float | None
+) -> None:
     if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
         raise TrackError(f"random track seed must be a non-negative integer, got {seed!r}")
     if not MIN_LENGTH <= length <= MAX_LENGTH:  # also rejects NaN
@@ -118,6 +131,11 @@ def _check_arguments(seed: int, length: float, difficulty: float, hairpin: float
         )
     if not 0.0 <= difficulty <= 1.0:
         raise TrackError(f"random track difficulty must be between 0 and 1, got {difficulty:g}")
+    if width is not None and not WIDTH_RANGE[0] <= width <= WIDTH_RANGE[1]:
+        raise TrackError(
+            f"random track width must be between {WIDTH_RANGE[0]:g} and {WIDTH_RANGE[1]:g} m, "
+            f"got {width:g}"
+        )
     if hairpin is not None and not HAIRPIN_RANGE[0] <= hairpin <= HAIRPIN_RANGE[1]:
         raise TrackError(
             f"random track hairpin radius must be between {HAIRPIN_RANGE[0]:g} and "
@@ -241,12 +259,19 @@ def _straightest_start(track: Track) -> float:
 
 
 def _attempt(
-    rng: np.random.Generator, seed: int, length: float, difficulty: float, hairpin: float | None
+    rng: np.random.Generator,
+    seed: int,
+    length: float,
+    difficulty: float,
+    hairpin: float | None,
+    width: float | None,
 ) -> Track | None:
     """One candidate circuit, or None when it fails a check even when calmed down."""
     # Hairpin tracks have the F1TENTH tracks' road; difficulty then sets only the corners, so
     # an easy one has long straights into its hairpins, as real circuits do.
     half = 0.5 * road_width(difficulty) if hairpin is None else HAIRPIN_HALF_WIDTH
+    if width is not None:
+        half = 0.5 * width
     shape = _Shape.draw(rng, length, difficulty)
     min_radius = BEND_RADIUS_MIN * half if hairpin is None else hairpin
     max_radius = max(_lerp(BEND_RADIUS_MAX, difficulty), 1.2 * min_radius)
@@ -269,7 +294,7 @@ def _attempt(
             f"Procedurally generated circuit: seed {seed}, length {length:g} m, "
             f"difficulty {difficulty:g}, road {2 * half:g} m wide"
         )
-        name = random_spec(seed, length, difficulty, hairpin)
+        name = random_spec(seed, length, difficulty, hairpin, width)
         if hairpin is None:
             # Checks on a wider road keep radius and clearance margins; same centre line.
             wide = Track(points, SAFETY * half, SAFETY * half, validate=False)
@@ -324,6 +349,7 @@ def generate_track(
     length: float = DEFAULT_LENGTH,
     difficulty: float = DEFAULT_DIFFICULTY,
     hairpin: float | None = None,
+    width: float | None = None,
 ) -> Track:
     """A random closed circuit, the same one for the same arguments.
 
@@ -337,6 +363,9 @@ def generate_track(
             0.4-1.1 m), and the inside of the road narrowed there as the importers narrow
             real files (:func:`tracks.validation.fit_widths`). None: every bend is at least
             1.7 half-widths and the road keeps its width.
+        width: total road width, m (before any narrowing), instead of the one that
+            ``difficulty`` or ``hairpin`` gives: e.g. 1.5 for a road that, scaled for the
+            DeepRacer car (``@0.52``), is as narrow as DeepRacer's 0.76 m tracks.
 
     Returns:
         A validated :class:`Track` named ``random:<seed>[:options]`` with its start line on the
@@ -349,12 +378,13 @@ def generate_track(
     >>> track.name, round(track.length)
     ('random:3:length=60,difficulty=0.2', 60)
     """
-    _check_arguments(seed, length, difficulty, hairpin)
+    _check_arguments(seed, length, difficulty, hairpin, width)
     length, difficulty = float(length), float(difficulty)
     hairpin = None if hairpin is None else float(hairpin)
+    width = None if width is None else float(width)
     for attempt in range(MAX_ATTEMPTS):
         rng = np.random.default_rng(seed if attempt == 0 else (int(seed), attempt))
-        track = _attempt(rng, int(seed), length, difficulty, hairpin)
+        track = _attempt(rng, int(seed), length, difficulty, hairpin, width)
         if track is not None:
             return track
     raise TrackError(

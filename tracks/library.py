@@ -46,10 +46,10 @@ def parse_random_spec(spec: str) -> tuple[int, dict[str, float]]:
     params: dict[str, float] = {}
     for item in filter(None, opts.split(",")):
         key, eq, value = item.partition("=")
-        if not eq or key not in ("length", "difficulty", "hairpin"):
+        if not eq or key not in ("length", "difficulty", "hairpin", "width"):
             raise TrackError(
-                f"bad random track option {item!r}; use length=<m>, difficulty=<0..1> "
-                "and/or hairpin=<m>"
+                f"bad random track option {item!r}; use length=<m>, difficulty=<0..1>, "
+                "hairpin=<m> and/or width=<m>"
             )
         try:
             params[key] = float(value)

@@ -214,6 +214,14 @@ def test_procedural_draws_hairpin_tracks_from_its_range() -> None:
         assert (1.0 / np.abs(track.curvature)).min() < 1.0
 
 
+def test_procedural_width_range_sets_the_generated_roads() -> None:
+    rng = np.random.default_rng(5)
+    narrow = Procedural(share=1.0, length=(100.0, 120.0), width=(1.3, 1.4), scale=0.52)
+    track = narrow.draw(rng)
+    assert "width=1.3" in track.name and track.name.endswith("@0.52")
+    assert 0.52 * 1.3 <= (track.width_left + track.width_right).max() <= 0.52 * 1.4 + 1e-9
+
+
 def test_procedural_hairpin_range_is_checked() -> None:
     from agents.train import _check
 

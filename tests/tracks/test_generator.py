@@ -197,3 +197,17 @@ def test_hairpin_spec_round_trips_through_load_track() -> None:
 def test_bad_hairpin_radius_is_refused(spec: str) -> None:
     with pytest.raises(TrackError, match="hairpin"):
         load_track(spec)
+
+
+def test_width_sets_the_road_for_the_deepracer_scale() -> None:
+    """DeepRacer's tracks are 0.66-1.07 m wide; a 1.5 m generated road scaled for the 0.26 m
+    DeepRacer car (@0.52) is 0.78 m, narrowed further inside its hairpins."""
+    spec = "random:7:length=120,difficulty=0.5,hairpin=0.6,width=1.5"
+    track = load_track(spec)
+    assert track.name == "random:7:length=120,hairpin=0.6,width=1.5"  # default difficulty
+    assert track.width_left.max() == pytest.approx(0.75)
+    small = load_track(spec + "@0.52")
+    assert (small.width_left + small.width_right).max() == pytest.approx(0.78)
+    assert generate_track(7, 120.0, 0.5, width=3.0).width_left.max() == pytest.approx(1.5)
+    with pytest.raises(TrackError, match="width must be between"):
+        generate_track(7, 120.0, 0.5, width=0.5)
