@@ -230,6 +230,7 @@ class RaceEntry(Base):
     __table_args__ = (
         UniqueConstraint("race_id", "car", name="uq_entries_race_car"),
         Index("ix_entries_submission_race", "submission_id", "race_id"),
+        Index("ix_entries_version_id", "version_id"),  # a version's races (validation, robustness)
     )
 
     id: Mapped[int] = mapped_column(primary_key=True)
@@ -353,6 +354,7 @@ class TrackRecord(Base):
         UniqueConstraint("track", "submission_id", name="uq_records_track_submission"),
         Index("ix_records_track_best_lap", "track", "best_lap"),
         Index("ix_records_set_at", "set_at"),  # track cache fingerprint
+        Index("ix_records_submission_id", "submission_id"),  # a submission's bests
     )
 
     id: Mapped[int] = mapped_column(primary_key=True)

@@ -108,3 +108,77 @@ def test_migrations_keep_the_rows_and_their_references_on_sqlite(tmp_path: Path)
         assert after == before
     finally:
         engine.dispose()
+
+
+# A migration run killed half-way through a batch operation: SQLite batch mode copies the
+# table into ``_alembic_tmp_<table>``, drops the original and renames the copy (Alembic's
+# batch docs); this kills the process (SIGKILL: nothing gets to clean up) just before the
+# rename, when the original table is already gone.
+KILL_BEFORE_BATCH_RENAME = """
+import os, signal, sys
+from alembic.ddl.impl import DefaultImpl
+from leaderboard.migrations import upgrade
+
+rename = DefaultImpl.rename_table
+
+def killed(self, old, new, schema=None):
+    if old.startswith("_alembic_tmp_"):
+        os.kill(os.getpid(), signal.SIGKILL)
+    rename(self, old, new, schema)
+
+DefaultImpl.rename_table = killed
+upgrade(sys.argv[1])
+"""
+
+
+def test_a_migration_killed_mid_batch_leaves_the_database_as_it_was(tmp_path: Path) -> None:
+    """SQLite migrations run in one transaction: SIGKILLed during the batch rebuild of
+    ``races`` (0005 → 0006), the database is still at 0005 with every row, no
+    ``_alembic_tmp_*`` table is left, and the next start migrates to head."""
+    import signal
+    import subprocess
+    import sys
+
+    from sqlalchemy import text
+    from sqlalchemy.orm import Session
+
+    from leaderboard.app import create_app
+    from leaderboard.settings import Settings
+    from tests.leaderboard import factories
+
+    url = f"sqlite:///{tmp_path / 'lb.db'}"
+    settings = Settings(data_dir=tmp_path / "data", database_url=url, tracks=["oval"])
+    engine = make_engine(url)
+    rows = "SELECT id, kind, status, track, seed FROM races ORDER BY id"
+    try:
+        upgrade(url, engine=engine)
+        with Session(engine) as session:
+            factories.seed(session, settings, n_submissions=3, n_races=3)
+        downgrade(url, "0005", engine=engine)
+        with engine.connect() as conn:
+            before = conn.execute(text(rows)).all()
+        assert before
+        engine.dispose()  # the killed process must not find our connection mid-transaction
+
+        run = subprocess.run(
+            [sys.executable, "-c", KILL_BEFORE_BATCH_RENAME, url],
+            capture_output=True,
+            timeout=300,
+            check=False,
+        )
+        assert run.returncode == -signal.SIGKILL, run.stderr.decode()[-2000:]
+
+        assert current(url, engine=engine) == "0005"
+        tables = set(inspect(engine).get_table_names())
+        assert not {t for t in tables if t.startswith("_alembic_tmp_")}, tables
+        assert "tournaments" not in tables  # 0006's new tables went with the rest
+        with engine.connect() as conn:
+            assert conn.execute(text(rows)).all() == before
+        engine.dispose()
+
+        create_app(settings)  # the next start: migrates to head
+        assert current(url, engine=engine) == head_revision(url)
+        with engine.connect() as conn:
+            assert conn.execute(text(rows)).all() == before
+    finally:
+        engine.dispose()
