@@ -39,7 +39,13 @@ import numpy as np
 
 ARMS = ("nominal", "sample", "adversarial", "robust_mg")
 TRAIN_TRACKS = ("oval", "hairpins", "chicanes", "bean", "technical", "speedway")
-EVAL_TRACKS = ("monza", "spielberg", "random:9001", "random:9002")
+EVAL_TRACKS = (
+    "monza",
+    "spielberg",
+    "random:9001",
+    "random:9002",
+    "random:9005:length=200,difficulty=0.5,hairpin=0.7",
+)
 SMALL_GRID = {
     "friction": (0.6, 1.0),
     "motor": (0.8, 1.2),
@@ -93,6 +99,11 @@ def train_run(args: argparse.Namespace, arm: str, seed: int) -> Path:
             seed=seed,
             uncertainty=arm,
             procedural=args.procedural,
+            procedural_length=list(args.procedural_length),
+            procedural_difficulty=list(args.procedural_difficulty),
+            procedural_hairpin=list(args.procedural_hairpin),
+            wall_ends_episode=args.wall_ends_episode,
+            n_epochs=args.n_epochs,
             eval_every=0,
             save_best=False,
             out=args.out,
@@ -202,8 +213,24 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     p.add_argument("--steps", type=int, default=20_000_000, help="agent-steps per run (budget)")
     p.add_argument("--train-tracks", nargs="+", default=list(TRAIN_TRACKS))
     p.add_argument("--eval-tracks", nargs="+", default=list(EVAL_TRACKS))
-    p.add_argument("--procedural", type=float, default=0.25, help="share of generated groups")
-    p.add_argument("--n-envs", type=int, default=64, help="races per track group")
+    p.add_argument("--procedural", type=float, default=0.5, help="share of generated groups")
+    p.add_argument("--procedural-length", type=float, nargs=2, default=[100.0, 250.0])
+    p.add_argument("--procedural-difficulty", type=float, nargs=2, default=[0.1, 1.0])
+    p.add_argument(
+        "--procedural-hairpin",
+        type=float,
+        nargs="*",
+        default=[0.45, 0.9],
+        help="hairpin radius range of generated tracks (real-track tightness); none: ordinary",
+    )
+    p.add_argument(
+        "--wall-ends-episode",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="a wall touch retires a learner car (what a wall costs on pybullet)",
+    )
+    p.add_argument("--n-epochs", type=int, default=5)
+    p.add_argument("--n-envs", type=int, default=8, help="races per track group")
     p.add_argument("--n-cars", type=int, default=4)
     p.add_argument("--n-steps", type=int, default=64, help="PPO rollout length per slot")
     p.add_argument("--batch-size", type=int, default=4096)
@@ -221,8 +248,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     for name in [*args.train_tracks, *args.eval_tracks]:
         load_track(name)
     runs: dict[str, dict[int, dict[str, dict[str, float]]]] = {}
-    for arm in args.arms:
-        for seed in range(1, args.seeds + 1):
+    for seed in range(1, args.seeds + 1):  # seed-major: a run cut short leaves balanced arms
+        for arm in args.arms:
             policy = train_run(args, arm, seed)
             runs.setdefault(arm, {})[seed] = score_run(args, policy)
     summary = summarise_arms(runs)
