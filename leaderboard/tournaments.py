@@ -41,16 +41,17 @@ from __future__ import annotations
 
 import math
 import random
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from sqlalchemy import func, select
+from sqlalchemy import Row, func, select
 from sqlalchemy.orm import Session
 
 from leaderboard import queries
+from leaderboard.cache import cache_for
 from leaderboard.errors import Conflict, LeaderboardError, NotFound
 from leaderboard.matchmaking import RANKED_PRIORITY, grid_entries, library_tracks, track_pool
 from leaderboard.models import (
@@ -64,7 +65,7 @@ from leaderboard.models import (
     TournamentEntrant,
     utcnow,
 )
-from leaderboard.queries import MAX_PER_PAGE, Page, UtcModel
+from leaderboard.queries import MAX_PER_PAGE, SNAPSHOT_MAX_AGE_S, Page, UtcModel
 from leaderboard.queue import enqueue
 from leaderboard.settings import Settings
 
@@ -392,65 +393,94 @@ class Standing:
     finalist: bool = False
 
 
-def _by_entry(session: Session, tournament: Tournament) -> list[tuple[Race, RaceEntry]]:
-    return list(
-        session.execute(
-            select(Race, RaceEntry)
-            .join(RaceEntry, RaceEntry.race_id == Race.id)
-            .where(Race.tournament_id == tournament.id)
-            .order_by(Race.id, RaceEntry.car)
-        ).all()
-    )
+# The columns the standings and the heats read: plain rows, not ORM objects (a race's
+# ``result`` and ``events`` documents, decoded for every heat, were most of a page's time).
+_HEAT_COLUMNS = (
+    Race.id.label("race_id"),
+    Race.stage,
+    Race.track,
+    Race.seed,
+    Race.status.label("race_status"),
+    Race.viser_path,
+    Race.replay_path,
+    Race.finished_at,
+    RaceEntry.submission_id,
+    RaceEntry.name,
+    RaceEntry.position,
+    RaceEntry.status,
+    RaceEntry.dnf_reason,
+    RaceEntry.best_lap,
+    RaceEntry.total_time,
+)
 
 
-def _tally(session: Session, tournament: Tournament) -> list[Standing]:
+def _by_entry(session: Session, tournament: Tournament) -> list[Row[Any]]:
+    """One row per car of every race of ``tournament`` (:data:`_HEAT_COLUMNS`), in the order
+    the races were planned, pole first."""
+    rows: Sequence[Any] = session.execute(
+        select(*_HEAT_COLUMNS)
+        .join(RaceEntry, RaceEntry.race_id == Race.id)
+        .where(Race.tournament_id == tournament.id)
+        .order_by(Race.id, RaceEntry.car)
+    ).all()
+    return list(rows)
+
+
+def _tally(
+    session: Session, tournament: Tournament, rows: Sequence[Row[Any]] | None = None
+) -> list[Standing]:
+    """Each entrant's points, places, best lap and qualifying so far, from ``rows`` (those
+    of :func:`_by_entry`, read if not given)."""
     table = {
         e.submission_id: Standing(e.id, e.submission_id, e.name, e.seed_rank)
         for e in tournament.entrants
     }
-    for race, entry in _by_entry(session, tournament):
-        row = table.get(entry.submission_id or 0)
-        if row is None or race.status != "finished":
+    for car in _by_entry(session, tournament) if rows is None else rows:
+        row = table.get(car.submission_id or 0)
+        if row is None or car.race_status != "finished":
             continue
-        finished = entry.status == "finished"
+        finished = car.status == "finished"
         row.races += 1
-        if entry.best_lap is not None:
-            row.best_lap = min(row.best_lap or math.inf, entry.best_lap)
-        if race.stage == "trial":
-            if finished and entry.total_time is not None:
+        if car.best_lap is not None:
+            row.best_lap = min(row.best_lap or math.inf, car.best_lap)
+        if car.stage == "trial":
+            if finished and car.total_time is not None:
                 row.trials_finished += 1
-                row.qualifying_time = (row.qualifying_time or 0.0) + entry.total_time
+                row.qualifying_time = (row.qualifying_time or 0.0) + car.total_time
             continue
-        if race.stage == "final":
+        if car.stage == "final":
             row.finalist = True
-            row.final_position = entry.position
-        row.points += points_for(entry.position, finished)
-        if finished and entry.position is not None and 1 <= entry.position <= len(POINTS):
-            row.places[entry.position - 1] += 1
-            row.wins += entry.position == 1
+            row.final_position = car.position
+        row.points += points_for(car.position, finished)
+        if finished and car.position is not None and 1 <= car.position <= len(POINTS):
+            row.places[car.position - 1] += 1
+            row.wins += car.position == 1
     return list(table.values())
 
 
-def qualifying(session: Session, tournament: Tournament) -> list[Standing]:
+def qualifying(
+    session: Session, tournament: Tournament, rows: Sequence[Row[Any]] | None = None
+) -> list[Standing]:
     """A time trial's qualifying order: more trials finished first, then less total time."""
-    rows = _tally(session, tournament)
     return sorted(
-        rows,
+        _tally(session, tournament, rows),
         key=lambda r: (-r.trials_finished, r.qualifying_time or math.inf, r.seed_rank),
     )
 
 
-def standings(session: Session, tournament: Tournament) -> list[Standing]:
-    """The standings (see the module docstring for the order)."""
+def standings(
+    session: Session, tournament: Tournament, rows: Sequence[Row[Any]] | None = None
+) -> list[Standing]:
+    """The standings (see the module docstring for the order); ``rows`` as :func:`_tally`."""
     if tournament.format == "time_trial":
-        rows = qualifying(session, tournament)
+        table = qualifying(session, tournament, rows)
         finalists = sorted(
-            (r for r in rows if r.finalist),
+            (r for r in table if r.finalist),
             key=lambda r: (r.final_position or math.inf, r.seed_rank),
         )
-        return finalists + [r for r in rows if not r.finalist]
+        return finalists + [r for r in table if not r.finalist]
     return sorted(
-        _tally(session, tournament),
+        _tally(session, tournament, rows),
         key=lambda r: (
             -r.points,
             [-c for c in r.places],
@@ -551,34 +581,34 @@ class TournamentDetail(TournamentSummary):
     final: Heat | None
 
 
-def _heats(session: Session, tournament: Tournament) -> list[Heat]:
-    rows = _by_entry(session, tournament)
+def _heats(rows: Sequence[Row[Any]]) -> list[Heat]:
+    """Every race of a tournament with its cars, from :func:`_by_entry`'s rows."""
     heats: dict[int, Heat] = {}
-    for race, entry in rows:
-        heat = heats.get(race.id)
+    for car in rows:
+        heat = heats.get(car.race_id)
         if heat is None:
-            heat = heats[race.id] = Heat(
-                race_id=race.id,
+            heat = heats[car.race_id] = Heat(
+                race_id=car.race_id,
                 number=len(heats) + 1,
-                stage=race.stage or "heat",
-                track=race.track,
-                seed=race.seed,
-                status=race.status,
+                stage=car.stage or "heat",
+                track=car.track,
+                seed=car.seed,
+                status=car.race_status,
                 cars=[],
-                viser_url=f"/replays/{Path(race.viser_path).name}" if race.viser_path else None,
-                replay_url=f"/replays/{Path(race.replay_path).name}" if race.replay_path else None,
-                finished_at=race.finished_at,
+                viser_url=f"/replays/{Path(car.viser_path).name}" if car.viser_path else None,
+                replay_url=f"/replays/{Path(car.replay_path).name}" if car.replay_path else None,
+                finished_at=car.finished_at,
             )
-        finished = entry.status == "finished"
+        finished = car.status == "finished"
         heat.cars.append(
             HeatCar(
-                name=entry.name,
-                submission_id=entry.submission_id,
-                position=entry.position,
-                status=entry.status,
-                dnf_reason=entry.dnf_reason,
-                total_time=entry.total_time,
-                points=0 if race.stage == "trial" else points_for(entry.position, finished),
+                name=car.name,
+                submission_id=car.submission_id,
+                position=car.position,
+                status=car.status,
+                dnf_reason=car.dnf_reason,
+                total_time=car.total_time,
+                points=0 if car.stage == "trial" else points_for(car.position, finished),
             )
         )
     for heat in heats.values():
@@ -586,14 +616,71 @@ def _heats(session: Session, tournament: Tournament) -> list[Heat]:
     return list(heats.values())
 
 
-def _summary(session: Session, tournament: Tournament, table: list[Standing]) -> dict[str, Any]:
-    counts = dict(
-        session.execute(
-            select(Race.status, func.count(Race.id))
-            .where(Race.tournament_id == tournament.id)
-            .group_by(Race.status)
-        ).all()
-    )
+@dataclass(frozen=True)
+class _Progress:
+    """Where a tournament's races stand: the key its cached pages are kept under.
+
+    Any change a page shows moves it: a race queued, started (a later ``started_at``),
+    handed back (one fewer running), finished or failed (its result is stored in the same
+    transaction), a final planned (one more race), the tournament finished.
+    """
+
+    status: str  # the tournament's
+    by_status: tuple[tuple[str, int], ...]  # races per status
+    last_started: datetime | None
+    last_finished: datetime | None
+
+    @property
+    def races(self) -> int:
+        """Races planned so far."""
+        return sum(n for _, n in self.by_status)
+
+    @property
+    def done(self) -> int:
+        """Races run (finished, or failed for good)."""
+        return sum(n for status, n in self.by_status if status in ("finished", "failed"))
+
+
+def _progress(session: Session, tournaments: Sequence[Tournament]) -> dict[int, _Progress]:
+    """:class:`_Progress` of each of ``tournaments``, in one grouped read of their races.
+
+    The ids are a range (a page of the list, or one tournament), so the read is one range
+    of the ``(tournament_id, id)`` index: no ``IN`` list to plan.
+    """
+    if not tournaments:
+        return {}
+    ids = [t.id for t in tournaments]
+    counts: dict[int, list[tuple[str, int]]] = {i: [] for i in ids}
+    started: dict[int, datetime | None] = dict.fromkeys(ids)
+    finished: dict[int, datetime | None] = dict.fromkeys(ids)
+    for tid, status, n, last_start, last_finish in session.execute(
+        select(
+            Race.tournament_id,
+            Race.status,
+            func.count(Race.id),
+            func.max(Race.started_at),
+            func.max(Race.finished_at),
+        )
+        .where(Race.tournament_id.between(min(ids), max(ids)))
+        .group_by(Race.tournament_id, Race.status)
+    ):
+        if tid not in counts:  # a tournament between two of the page's (not on it)
+            continue
+        counts[tid].append((status, int(n)))
+        started[tid] = max(filter(None, (started[tid], last_start)), default=None)
+        finished[tid] = max(filter(None, (finished[tid], last_finish)), default=None)
+    return {
+        t.id: _Progress(
+            status=t.status,
+            by_status=tuple(sorted(counts[t.id])),
+            last_started=started[t.id],
+            last_finished=finished[t.id],
+        )
+        for t in tournaments
+    }
+
+
+def _summary(tournament: Tournament, progress: _Progress, table: list[Standing]) -> dict[str, Any]:
     started = any(r.races for r in table)
     leader = table[0] if table and started else None
     return {
@@ -608,8 +695,8 @@ def _summary(session: Session, tournament: Tournament, table: list[Standing]) ->
         "final_size": tournament.final_size,
         "status": tournament.status,
         "entrants": len(tournament.entrants),
-        "races": sum(counts.values()),
-        "races_done": counts.get("finished", 0) + counts.get("failed", 0),
+        "races": progress.races,
+        "races_done": progress.done,
         "leader": leader.name if leader else None,
         "leader_submission_id": leader.submission_id if leader else None,
         "created_by": tournament.created_by,
@@ -618,44 +705,56 @@ def _summary(session: Session, tournament: Tournament, table: list[Standing]) ->
     }
 
 
-def tournament_detail(session: Session, tournament_id: int) -> TournamentDetail:
+def tournament_detail(
+    session: Session, tournament_id: int, *, max_age_s: float = SNAPSHOT_MAX_AGE_S
+) -> TournamentDetail:
     """A tournament's page: standings, heats, final.
+
+    Cached (:mod:`leaderboard.cache`) under the tournament's :class:`_Progress`, which
+    storing a heat's result moves: a view reads the tournament and one aggregate of its
+    races, and recomputes the standings only when they can have changed.
 
     Raises:
         NotFound: no such tournament.
     """
     tournament = get_tournament(session, tournament_id)
-    table = standings(session, tournament)
-    heats = _heats(session, tournament)
-    return TournamentDetail(
-        **_summary(session, tournament, table),
-        points=list(POINTS),
-        standings=[
-            StandingRow(
-                rank=i + 1,
-                submission_id=r.submission_id,
-                name=r.name,
-                seed_rank=r.seed_rank,
-                points=r.points,
-                races=r.races,
-                wins=r.wins,
-                best_lap=r.best_lap,
-                trials_finished=r.trials_finished,
-                qualifying_time=r.qualifying_time,
-                finalist=r.finalist,
-                final_position=r.final_position,
-            )
-            for i, r in enumerate(table)
-        ],
-        heats=heats,
-        final=next((h for h in heats if h.stage == "final"), None),
-    )
+    progress = _progress(session, [tournament])[tournament.id]
+
+    def compute() -> TournamentDetail:
+        rows = _by_entry(session, tournament)
+        table = standings(session, tournament, rows)
+        heats = _heats(rows)
+        return TournamentDetail(
+            **_summary(tournament, progress, table),
+            points=list(POINTS),
+            standings=[
+                StandingRow(
+                    rank=i + 1,
+                    submission_id=r.submission_id,
+                    name=r.name,
+                    seed_rank=r.seed_rank,
+                    points=r.points,
+                    races=r.races,
+                    wins=r.wins,
+                    best_lap=r.best_lap,
+                    trials_finished=r.trials_finished,
+                    qualifying_time=r.qualifying_time,
+                    finalist=r.finalist,
+                    final_position=r.final_position,
+                )
+                for i, r in enumerate(table)
+            ],
+            heats=heats,
+            final=next((h for h in heats if h.stage == "final"), None),
+        )
+
+    return cache_for(session).get(("tournament", tournament.id), progress, compute, max_age_s)
 
 
 def tournament_list(
-    session: Session, *, page: int = 1, per_page: int = 50
+    session: Session, *, page: int = 1, per_page: int = 50, max_age_s: float = SNAPSHOT_MAX_AGE_S
 ) -> Page[TournamentSummary]:
-    """Every tournament, newest first."""
+    """Every tournament, newest first; each line cached as :func:`tournament_detail` is."""
     page, per_page = max(1, page), max(1, min(MAX_PER_PAGE, per_page))
     total = int(session.scalar(select(func.count(Tournament.id))) or 0)
     rows = session.scalars(
@@ -664,5 +763,13 @@ def tournament_list(
         .offset((page - 1) * per_page)
         .limit(per_page)
     ).all()
-    items = [TournamentSummary(**_summary(session, t, standings(session, t))) for t in rows]
+    progress = _progress(session, rows)
+    cache = cache_for(session)
+
+    def summary(t: Tournament) -> Callable[[], TournamentSummary]:
+        return lambda: TournamentSummary(**_summary(t, progress[t.id], standings(session, t)))
+
+    items = [
+        cache.get(("tournament-summary", t.id), progress[t.id], summary(t), max_age_s) for t in rows
+    ]
     return Page(items=items, total=total, page=page, per_page=per_page)

@@ -237,6 +237,58 @@ def test_a_time_trial_qualifies_the_fastest_for_its_final(db: Session, settings:
     assert times == sorted(times)  # qualifying agrees with the final here
 
 
+def test_the_cached_pages_follow_every_heat(db: Session, settings: Settings) -> None:
+    """The standings are cached under the tournament's progress: a view with nothing changed
+    is served from the cache (the same object), and a heat started, handed back by its
+    worker, finished (its result stored) or the tournament finished shows at once — the
+    cached detail and list line always equal freshly computed ones."""
+    subs, _ = factories.seed(db, settings, n_submissions=4, n_races=0)
+    cup = create_tournament(
+        db, settings, name="cached cup", entrants=subs, tracks=["oval"], seeds=[1, 2],
+        heat_size=2,
+    )  # fmt: skip
+    db.commit()
+
+    def view() -> tournaments.TournamentDetail:
+        db.expire_all()
+        cached = tournaments.tournament_detail(db, cup.id)
+        assert tournaments.tournament_detail(db, cup.id) is cached  # nothing changed: a hit
+        assert cached == tournaments.tournament_detail(db, cup.id, max_age_s=0.0)
+        (line,) = tournaments.tournament_list(db).items
+        assert tournaments.tournament_list(db).items[0] is line
+        assert line == tournaments.tournament_list(db, max_age_s=0.0).items[0]
+        assert (line.races_done, line.leader) == (cached.races_done, cached.leader)
+        return cached
+
+    seen = [view()]
+    handed_back = False
+    while seen[-1].status != "finished":
+        tournaments.advance(db, settings, slots=1)
+        db.commit()
+        lease = queue.claim(db, owner="t", lease_s=60)
+        if lease is None:  # all run: the next advance finishes it
+            seen.append(view())
+            continue
+        race = db.get(Race, lease.race_id)
+        assert race is not None
+        started = view()
+        assert {h.race_id: h.status for h in started.heats}[race.id] == "running"
+        if not handed_back:  # a worker stopping hands the heat back: queued again
+            assert queue.fail(db, lease, "worker stopped")
+            handed_back = True
+            assert {h.race_id: h.status for h in view().heats}[race.id] == "queued"
+            continue
+        cars = sorted(race.entries, key=lambda e: -subs.index(e.submission_id or 0))
+        assert queue.complete(db, lease, factories.fake_result(race, [e.car for e in cars]))
+        seen.append(view())
+        heat = {h.race_id: h for h in seen[-1].heats}[race.id]
+        assert heat.status == "finished" and sorted(c.points for c in heat.cars) == [18, 25]
+    done = [s.races_done for s in seen]
+    assert done == sorted(done) and done[-1] == seen[-1].races == 4 and handed_back
+    assert seen[0].leader is None and seen[-1].leader_submission_id == subs[-1]
+    assert sum(r.points for r in seen[-1].standings) == 4 * (25 + 18)
+
+
 def test_a_solo_trial_job_races_one_car(tmp_path: Path) -> None:
     job = RaceJob(
         "trial", (Entrant("p", "pursuit"),), "oval", str(tmp_path), laps=1,
