@@ -17,13 +17,19 @@ run, against the same in-process figures.
    they spent runnable but waiting for a CPU — on a loaded machine, every hand-over between
    two processes risks such a wait, which an in-process call never pays.
 2. **Races per minute.** One-lap races with four pursuit cars: in-process, and for each mode
-   four sandboxed cars two ways: ``fresh`` (each race starts four sandboxes, loads the
-   policies, races, kills them) and ``pooled`` (the ``--races`` races are one batch:
-   :class:`submissions.remote.SandboxPool` keeps the four sandboxes between races, as
-   :func:`submissions.jobs.run_race_jobs` does; the batch's figure includes the pool's
-   start-up, paid in its first race; "after start-up" compares the batch's later races
-   with the same in-process races). Races alternate: for each seed an in-process race,
-   then each mode's fresh and pooled race. As in every race, the sandboxes start before the
+   four sandboxed cars three ways: ``fresh`` (each race starts four sandboxes, loads the
+   policies, races, kills them), ``pooled`` (the ``--races`` races are one batch:
+   :class:`submissions.remote.SandboxPool` keeps the four sandboxes between races; the
+   batch's figure includes the pool's start-up, paid in its first race; "after start-up"
+   compares the batch's later races with the same in-process races) and ``executor`` (the
+   real path of ``slipstream evaluate`` and ``slipstream worker``: each race is a
+   :class:`~submissions.jobs.RaceJob` run by a one-process
+   :class:`~submissions.executors.LocalExecutor` kept warm between runs, as they keep it —
+   the job process, its pooled sandboxes, the replay log written, the result sent back;
+   its first race includes spawning the job process). The executor path with in-process
+   pursuit cars is timed too (what the job process itself costs). Races alternate: for each
+   seed an in-process race, the executor's in-process race, then each mode's fresh, pooled
+   and executor race. As in every race, the sandboxes start before the
    track and the simulator are built (:func:`arena.race.run_race`), so their start-up
    overlaps that work. On a 2-core machine the four workers share the cores with the
    simulator.
@@ -269,17 +275,24 @@ def races_per_minute(
     folder: Path, track: str, races: int, limits: Any, modes: list[str]
 ) -> dict[str, Any]:
     """One-lap races with 4 in-process pursuit cars, and per mode with 4 sandboxed ones
-    (fresh, pooled), alternating race by race."""
+    (fresh, pooled, and through the executor: the real path), alternating race by race;
+    plus the executor path with 4 in-process pursuit cars (what the job process costs)."""
     from agents.baselines import make_baseline
     from agents.loading import DEFAULT_LAYOUT
     from arena.race import run_race
+    from submissions.executors import LocalExecutor
+    from submissions.jobs import Entrant, RaceJob
     from submissions.remote import SandboxedPolicy, SandboxPool
 
     bundle = _bundle(folder, "pursuit_race", PURSUIT_SOURCE)
-    spent: dict[str, list[float]] = {"in_process": []}  # seconds per race, by kind
-    spent |= {f"{m}/{k}": [] for m in modes for k in ("fresh", "pooled")}
+    zipped = folder / "pursuit_race.zip"
+    spent: dict[str, list[float]] = {"in_process": [], "executor/in_process": []}
+    spent |= {f"{m}/{k}": [] for m in modes for k in ("fresh", "pooled", "executor")}
     statuses: dict[str, list[str]] = {m: [] for m in modes}
     pools = {mode: SandboxPool() for mode in modes}
+    # The real path (slipstream evaluate, slipstream worker): one job process, kept warm
+    # between runs as they keep it, racing run_race_job with the replay log written.
+    executors = {key: LocalExecutor(workers=1, keep_warm_s=3600.0) for key in [*modes, "none"]}
 
     def timed(key: str, cars: list[Any], seed: int) -> list[str]:
         start = time.perf_counter()
@@ -287,9 +300,29 @@ def races_per_minute(
         spent[key].append(time.perf_counter() - start)
         return [c.status for c in result.cars]
 
+    def through_executor(key: str, source: str, seed: int) -> list[str]:
+        job = RaceJob(
+            f"{key.replace('/', '-')}-{seed}",
+            tuple(Entrant(f"car{i}", source) for i in range(4)),
+            track,
+            str(folder / "executor"),
+            laps=1,
+            seed=seed,
+            limits=limits,
+            record_viser=False,
+        )
+        executor = executors[key.split("/", 1)[0] if source != "pursuit" else "none"]
+        start = time.perf_counter()
+        (res,) = executor.run([job])
+        spent[key].append(time.perf_counter() - start)
+        if not res.ok:
+            raise RuntimeError(f"{key}: {res.error}")
+        return [c["status"] for c in res.result["cars"]]
+
     try:
         for seed in range(races):
             timed("in_process", [make_baseline("pursuit", DEFAULT_LAYOUT) for _ in range(4)], seed)
+            through_executor("executor/in_process", "pursuit", seed)
             for mode in modes:
                 fresh = _in_mode(mode, lambda: [SandboxedPolicy(bundle, limits) for _ in range(4)])
                 statuses[mode] += timed(f"{mode}/fresh", fresh, seed)
@@ -298,26 +331,47 @@ def races_per_minute(
                     mode, lambda pool=pool: [pool.policy(bundle, limits) for _ in range(4)]
                 )
                 statuses[mode] += timed(f"{mode}/pooled", pooled, seed)
+                # its job process is spawned (inheriting SANDBOX) on the first run
+                statuses[mode] += _in_mode(
+                    mode,
+                    lambda mode=mode, seed=seed: through_executor(
+                        f"{mode}/executor", str(zipped), seed
+                    ),
+                )
     finally:
         for pool in pools.values():
             pool.close()
+        for executor in executors.values():
+            executor.close()
 
     def per_min(times: list[float]) -> float:
         return 60 * len(times) / sum(times) if times else float("nan")
 
     in_process = per_min(spent["in_process"])
-    out: dict[str, Any] = {"races": races, "in_process_races_per_min": in_process}
+    out: dict[str, Any] = {
+        "races": races,
+        "seconds": spent,  # per race, by kind, in the order run
+        "in_process_races_per_min": in_process,
+        "executor_in_process_races_per_min": per_min(spent["executor/in_process"]),
+    }
     for mode in modes:
         fresh, pooled = per_min(spent[f"{mode}/fresh"]), per_min(spent[f"{mode}/pooled"])
+        real = per_min(spent[f"{mode}/executor"])
         # after the pool's start-up (paid in the batch's first race), against the same races
         steady = per_min(spent[f"{mode}/pooled"][1:]) / per_min(spent["in_process"][1:])
         out[mode] = {
             "fresh_races_per_min": fresh,
             "pooled_races_per_min": pooled,
+            "executor_races_per_min": real,
             "fresh_ratio": fresh / in_process,
             "pooled_ratio": pooled / in_process,
+            "executor_ratio": real / in_process,
             "pooled_after_start_ratio": steady,
+            "executor_after_start_ratio": (
+                per_min(spent[f"{mode}/executor"][1:]) / per_min(spent["in_process"][1:])
+            ),
             "first_pooled_race_s": spent[f"{mode}/pooled"][0],
+            "first_executor_race_s": spent[f"{mode}/executor"][0],
             "finished_fraction": statuses[mode].count("finished") / len(statuses[mode]),
         }
     return out
@@ -370,7 +424,7 @@ def print_table(doc: dict[str, Any]) -> None:
     from rich.console import Console
     from rich.table import Table
 
-    console = Console()
+    console = Console(width=150)
     steps, races = doc["per_step"], doc["races"]
     step_table = Table(
         title=f"Per step, pursuit policy ({doc['steps']} observations, {doc['track']}); "
@@ -390,15 +444,19 @@ def print_table(doc: dict[str, Any]) -> None:
         step_table.add_column(name, justify="right")
     race_table = Table(
         title=f"One-lap races with 4 pursuit cars ({races.get('races', 0)} each); in-process: "
-        f"{races.get('in_process_races_per_min', float('nan')):.1f} races/min"
+        f"{races.get('in_process_races_per_min', float('nan')):.1f} races/min; executor path "
+        f"with in-process cars: {races.get('executor_in_process_races_per_min', float('nan')):.1f}"
     )
     for name in (
         "mode",
         "fresh races/min",
         "pooled races/min",
+        "executor races/min",
         "fresh ×",
         "pooled ×",
+        "executor ×",
         "pooled × after start-up",
+        "executor × after start-up",
         "finished",
     ):
         race_table.add_column(name, justify="right")
@@ -423,9 +481,12 @@ def print_table(doc: dict[str, Any]) -> None:
             mode,
             f"{r['fresh_races_per_min']:.1f}",
             f"{r['pooled_races_per_min']:.1f}",
+            f"{r['executor_races_per_min']:.1f}",
             f"{r['fresh_ratio']:.2f}",
             f"{r['pooled_ratio']:.2f}",
+            f"{r['executor_ratio']:.2f}",
             f"{r['pooled_after_start_ratio']:.2f}",
+            f"{r['executor_after_start_ratio']:.2f}",
             f"{r['finished_fraction']:.0%}",
         )
     if doc.get("startup"):

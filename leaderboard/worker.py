@@ -152,14 +152,16 @@ def default_runner(
     Raises:
         SandboxError: bubblewrap cannot run here and ``allow_weak_sandbox`` is False.
     """
-    from submissions.executors import make_executor  # noqa: PLC0415 - imports the simulator
+    from submissions.executors import KEEP_WARM_S, make_executor  # noqa: PLC0415 - the simulator
     from submissions.sandbox import allow_weak_sandbox as allow  # noqa: PLC0415
     from submissions.sandbox import sandbox_mode  # noqa: PLC0415
 
     if allow_weak_sandbox:
         allow()
     sandbox_mode()  # fail closed before any race is claimed
-    return make_executor(ray_address=ray_address, workers=workers)
+    # Job processes (and their sandboxes) stay warm between batches: a bundle raced again
+    # soon after skips its sandbox's start-up (Worker.close ends them).
+    return make_executor(ray_address=ray_address, workers=workers, keep_warm_s=KEEP_WARM_S)
 
 
 class Worker:
@@ -207,6 +209,7 @@ class Worker:
         self.sessions = make_sessionmaker(self.engine)
         self._runner = runner
         self._cancel: Callable[[str, str], None] | None = getattr(runner, "cancel", None)
+        self._close_runner: Callable[[], None] | None = None  # the executor's close
         self._ray_address = ray_address
         self._running: list[str] = []  # job ids of the batch in progress
         self.rng = random.Random()
@@ -221,6 +224,7 @@ class Worker:
         if self._runner is None:
             executor = default_runner(self.workers, self._ray_address, self.allow_weak_sandbox)
             self._runner, self._cancel = executor.run, executor.cancel
+            self._close_runner = executor.close
         return self._runner
 
     def request_stop(self) -> None:
@@ -232,7 +236,9 @@ class Worker:
                 self._cancel(job_id, HANDED_BACK)
 
     def close(self) -> None:
-        """Release the database connections."""
+        """End the executor's warm job processes; release the database connections."""
+        if self._close_runner is not None:
+            self._close_runner()
         self.engine.dispose()
 
     # ---- one cycle -------------------------------------------------------------------------

@@ -9,7 +9,9 @@
 
 Every race writes its replay log and ``.viser`` 3D replay into ``--out``. Jobs run in a local
 process pool (``--workers``) or on Ray (``--ray-address``), each with a wall-clock limit
-(``--job-timeout``).
+(``--job-timeout``). A job process runs one race after another and keeps the bundle's
+sandboxes running between them (:mod:`submissions.executors`), so the validation race and
+the races pay the sandboxes' start-up once per process.
 
 The bundle is untrusted: it runs only in the bubblewrap namespace sandbox. Where that cannot
 run, ``evaluate`` refuses (exit 2) unless ``--allow-weak-sandbox`` accepts the weaker seccomp
@@ -166,7 +168,7 @@ def evaluate_command(args: argparse.Namespace) -> int:
 
     from agents.cli import results_table
     from submissions.bundle import open_bundle
-    from submissions.executors import JOB_TIMEOUT_S, make_executor
+    from submissions.executors import JOB_TIMEOUT_S, KEEP_WARM_S, make_executor
     from submissions.sandbox import allow_weak_sandbox, sandbox_mode
 
     if args.allow_weak_sandbox:
@@ -187,18 +189,25 @@ def evaluate_command(args: argparse.Namespace) -> int:
     timeout = JOB_TIMEOUT_S if args.job_timeout is None else args.job_timeout
     if not timeout > 0:
         raise SubmissionError(f"--job-timeout must be positive, not {args.job_timeout}")
-    executor = make_executor(args.ray_address, workers=args.workers, job_timeout_s=timeout)
+    # The job processes stay warm from the validation race to the races: the bundle's
+    # sandboxes start once per process (closed when the block ends, however it ends).
+    executor = make_executor(
+        args.ray_address, workers=args.workers, job_timeout_s=timeout, keep_warm_s=KEEP_WARM_S
+    )
     to_stdout = args.json == "-"
     console = Console(stderr=to_stdout)
     results: list[Any] = []
-    with Progress(
-        TextColumn("[bold]evaluating[/] {task.description}"),
-        BarColumn(),
-        TextColumn("{task.completed}/{task.total} races"),
-        TimeElapsedColumn(),
-        console=console,
-        transient=True,
-    ) as bar:
+    with (
+        executor,
+        Progress(
+            TextColumn("[bold]evaluating[/] {task.description}"),
+            BarColumn(),
+            TextColumn("{task.completed}/{task.total} races"),
+            TimeElapsedColumn(),
+            console=console,
+            transient=True,
+        ) as bar,
+    ):
         task = bar.add_task(f"{manifest.name}: validation", total=len(jobs))
         (validation,) = executor.run(jobs[:1])
         bar.update(task, completed=1, description=f"{manifest.name}: races")

@@ -33,12 +33,13 @@ the simulator, torch and the sandbox are imported inside :func:`run_race_job`.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import re
 import tempfile
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -276,7 +277,9 @@ def extract_bundle(entrant: Entrant, env: EnvSpec, tmp: Path, bundles: dict[str,
         BundleError: the bundle is invalid.
     """
     if entrant.source not in bundles:
-        dest = tmp / f"bundle_{len(bundles)}"
+        n = len(bundles)
+        while (dest := tmp / f"bundle_{n}").exists():  # a source extracted before, changed
+            n += 1
         bundles[entrant.source] = open_bundle(Path(entrant.source), dest, env=env)
     return bundles[entrant.source]
 
@@ -402,31 +405,117 @@ def write_progress(path: Path, step: int) -> None:
 def run_race_job(job: RaceJob) -> JobResult:
     """Run one race job (see the module docstring); a pure function of ``job``.
 
+    Inside :func:`job_batch` (an executor's job process) the job runs in that batch, reusing
+    the sandboxes earlier jobs of the batch left running for its bundles.
+
     Raises:
         SubmissionError: a bundle is invalid (:class:`~submissions.errors.BundleError`), the
             sandbox cannot be set up, or the track does not load.
     """
+    if _BATCH is not None:
+        return _BATCH.run(job)
     with tempfile.TemporaryDirectory(prefix=f"slipstream-{job.job_id}-") as tmp:
         return _run_job(job, Path(tmp), {}, None)
 
 
+class JobBatch:
+    """What jobs run one after another in one process share: each bundle's extraction and
+    its started sandboxes (:class:`~submissions.remote.SandboxPool`), so a batch pays each
+    sandbox's start-up once. Use it as a context manager: leaving it kills every sandbox.
+
+    A bundle is extracted once per source file while the file is unchanged (size, mtime,
+    inode); a changed file is extracted again and never meets the old one's sandboxes. Before
+    each job the pool keeps only the idle sandboxes that job can use (as many per bundle as
+    it races), so a batch holds at most one race's sandboxes between jobs.
+    """
+
+    def __init__(self) -> None:
+        self._tmp = tempfile.TemporaryDirectory(prefix="slipstream-batch-")
+        self.folder = Path(self._tmp.name)
+        self._pool: SandboxPool | None = None
+        self.bundles: dict[str, Bundle] = {}
+        self._stamps: dict[str, tuple[int, ...]] = {}
+
+    @property
+    def pool(self) -> SandboxPool:
+        """The batch's sandboxes (made on first use: the sandbox's modules load then)."""
+        if self._pool is None:
+            from submissions.remote import SandboxPool  # noqa: PLC0415 - the sandbox
+
+            self._pool = SandboxPool()
+        return self._pool
+
+    def run(self, job: RaceJob) -> JobResult:
+        """Run ``job`` in this batch (as :func:`run_race_job` does alone).
+
+        Raises:
+            SubmissionError: as :func:`run_race_job`.
+        """
+        env = EnvSpec.current()
+        needed: dict[str, int] = {}
+        for entrant in job.entrants:
+            if entrant.is_baseline:
+                continue
+            self._forget_if_changed(entrant.source)
+            bundle = extract_bundle(entrant, env, self.folder, self.bundles)
+            needed[str(bundle.root)] = needed.get(str(bundle.root), 0) + 1
+        if self._pool is not None or needed:  # a baseline-only batch never loads the sandbox
+            self.pool.retain(needed)
+        return _run_job(job, self.folder, self.bundles, self._pool)
+
+    def _forget_if_changed(self, source: str) -> None:
+        try:
+            st = os.stat(source)
+            stamp: tuple[int, ...] = (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
+        except OSError:
+            stamp = ()
+        if self._stamps.get(source) != stamp:
+            self.bundles.pop(source, None)  # extracted again, into a new folder
+            self._stamps[source] = stamp
+
+    def close(self) -> None:
+        """Kill every sandbox of the batch and remove its folder; idempotent."""
+        if self._pool is not None:
+            self._pool.close()
+        self._tmp.cleanup()
+
+    def __enter__(self) -> JobBatch:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+_BATCH: JobBatch | None = None  # the batch run_race_job runs in (set by job_batch)
+
+
+@contextlib.contextmanager
+def job_batch() -> Iterator[JobBatch]:
+    """Run every :func:`run_race_job` call inside the block in one :class:`JobBatch`
+    (what an executor's job process does around its jobs); the batch is closed on leaving."""
+    global _BATCH  # noqa: PLW0603 - one batch per process, for the job function's calls
+    with JobBatch() as batch:
+        previous, _BATCH = _BATCH, batch
+        try:
+            yield batch
+        finally:
+            _BATCH = previous
+
+
 def run_race_jobs(jobs: Sequence[RaceJob]) -> list[JobResult]:
-    """Run ``jobs`` one after another in this process, sharing between them each bundle's
-    extraction and its started sandboxes (:class:`~submissions.remote.SandboxPool`): a
-    batch pays each sandbox's start-up once. Every sandbox is killed before it returns.
+    """Run ``jobs`` one after another in this process, in one :class:`JobBatch` (each
+    bundle's sandboxes started once and kept between its races; all killed before it
+    returns).
 
     A job that fails (a :class:`SubmissionError`) gets a :meth:`JobResult.failed` result;
     the others still run.
     """
-    from submissions.remote import SandboxPool  # noqa: PLC0415 - the sandbox
-
     results: list[JobResult] = []
-    with tempfile.TemporaryDirectory(prefix="slipstream-batch-") as tmp, SandboxPool() as pool:
-        opened: dict[str, Bundle] = {}
+    with job_batch():
         for job in jobs:
             begun = time.perf_counter()
             try:
-                results.append(_run_job(job, Path(tmp), opened, pool))
+                results.append(run_race_job(job))
             except SubmissionError as err:
                 line = f"{type(err).__name__}: {err}".splitlines()[0]
                 results.append(JobResult.failed(job, line, 1, time.perf_counter() - begun))
@@ -527,8 +616,10 @@ def _run_job(
 __all__ = [
     "BASELINE_NAMES",
     "Entrant",
+    "JobBatch",
     "JobResult",
     "RaceJob",
+    "job_batch",
     "job_car",
     "progress_path",
     "race_wall_clock_s",

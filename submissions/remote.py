@@ -75,6 +75,7 @@ import shutil
 import tempfile
 import threading
 import time
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, NoReturn
 
@@ -838,6 +839,18 @@ class SandboxPool:
         key = self._key(policy.bundle, policy.limits, policy.env_spec)
         policy._pooled = True
         self._idle.setdefault(key, []).append(policy)
+
+    def retain(self, needed: Mapping[str, int]) -> None:
+        """Kill the idle sandboxes beyond ``needed[str(bundle root)]`` per bundle (none for
+        a bundle not in ``needed``): what the next race cannot use is not kept running."""
+        for key, policies in list(self._idle.items()):
+            keep = needed.get(str(policies[0].bundle.root), 0) if policies else 0
+            for policy in policies[keep:]:
+                policy._pooled = False
+                policy.shutdown()
+            del policies[keep:]
+            if not policies:
+                del self._idle[key]
 
     @property
     def idle(self) -> int:

@@ -18,7 +18,7 @@ import pytest
 from submissions import sandbox
 from submissions.bundle import make_bundle, open_bundle
 from submissions.errors import SubmissionError
-from submissions.executors import LocalExecutor, RayExecutor, make_executor
+from submissions.executors import LocalExecutor, RayExecutor, make_executor, plan_batches
 from submissions.jobs import Entrant, JobResult, RaceJob
 from submissions.remote import SandboxedPolicy
 
@@ -48,10 +48,11 @@ def fake_result(job: RaceJob) -> JobResult:
 
 
 def die_once(job: RaceJob) -> JobResult:
-    """Kill the worker process the first time each job runs (the marker says it ran)."""
+    """Kill the worker process the first time each job runs (the marker says it ran, and
+    in which process)."""
     marker = Path(job.out_dir) / f"{job.job_id}.ran"
     if not marker.exists():
-        marker.touch()
+        marker.write_text(str(os.getpid()))
         os._exit(9)
     return fake_result(job)
 
@@ -79,6 +80,12 @@ def sleep_long(job: RaceJob) -> JobResult:
     return fake_result(job)
 
 
+def sleep_if_slow(job: RaceJob) -> JobResult:
+    if job.job_id.startswith("slow"):
+        time.sleep(60)
+    return fake_result(job)
+
+
 @pytest.mark.slow
 def test_local_pool_runs_real_races(tmp_path: Path) -> None:
     seen: list[tuple[int, int]] = []
@@ -95,7 +102,8 @@ def test_dead_worker_is_retried_and_yielded_once(tmp_path: Path) -> None:
     results = list(LocalExecutor(workers=2, max_retries=2, fn=die_once).run(jobs))
     assert sorted(r.job_id for r in results) == [j.job_id for j in jobs]  # once each
     assert all(r.ok and r.attempts == 2 for r in results)
-    assert len({r.result["pid"] for r in results}) == 4  # a fresh process per run
+    for r in results:  # each ran again in another process than the one it killed
+        assert str(r.result["pid"]) != (tmp_path / f"{r.job_id}.ran").read_text()
 
 
 def test_worker_dying_every_time_gives_up(tmp_path: Path) -> None:
@@ -117,6 +125,44 @@ def test_job_timeout_kills_the_worker(tmp_path: Path) -> None:
     assert time.monotonic() - start < 30
     assert all(str(r.error).startswith("timed out after 1 s") for r in results)
     assert all(r.attempts == 1 for r in results)  # failed by the job, never retried
+
+
+def test_a_process_runs_a_bounded_batch_and_a_timeout_costs_only_its_job(
+    tmp_path: Path,
+) -> None:
+    # One process at a time, two jobs per process: job0 and job1 share one; slow2 hangs and
+    # is killed with its process at its own limit; the jobs queued behind it run in a fresh
+    # process, its last batch; nothing of any process remains.
+    jobs = make_jobs(tmp_path, 5)
+    jobs[2] = RaceJob("slow2", jobs[2].entrants, "oval", str(tmp_path), record_viser=False)
+    executor = LocalExecutor(workers=1, fn=sleep_if_slow, job_timeout_s=3.0, batch_size=2)
+    results = {r.job_id: r for r in executor.run(jobs)}
+    assert sorted(results) == ["job0", "job1", "job3", "job4", "slow2"]
+    slow = results.pop("slow2")
+    assert str(slow.error).startswith("timed out after 3 s") and slow.attempts == 1
+    assert all(r.ok and r.attempts == 1 for r in results.values()), results
+    pids = {k: r.result["pid"] for k, r in results.items()}
+    assert pids["job0"] == pids["job1"] != pids["job3"] == pids["job4"]
+    assert scratch_folders(os.getpid()) == [] and executor.warm == 0
+
+
+def test_idle_processes_are_kept_warm_between_runs_then_ended(tmp_path: Path) -> None:
+    executor = LocalExecutor(workers=1, fn=fake_result, keep_warm_s=30.0)
+    (first,) = executor.run(make_jobs(tmp_path, 1))
+    assert executor.warm == 1 and len(scratch_folders(os.getpid())) == 1
+    (second,) = executor.run(make_jobs(tmp_path / "again", 1))
+    assert second.result["pid"] == first.result["pid"]  # the same process, still warm
+    executor.close()
+    assert executor.warm == 0 and scratch_folders(os.getpid()) == []
+    with pytest.raises(ProcessLookupError):
+        os.kill(first.result["pid"], 0)
+    # Not taken within keep_warm_s: ended by the executor's timer.
+    brief = LocalExecutor(workers=1, fn=fake_result, keep_warm_s=0.3)
+    list(brief.run(make_jobs(tmp_path / "brief", 1)))
+    deadline = time.monotonic() + 10
+    while (brief.warm or scratch_folders(os.getpid())) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert brief.warm == 0 and scratch_folders(os.getpid()) == []
 
 
 def test_stopping_early_kills_running_jobs(tmp_path: Path) -> None:
@@ -244,6 +290,21 @@ def test_a_sigkilled_runner_leaves_nothing_once_the_next_one_starts(
     sandbox.reap_stale()
     assert sandbox_traces(sid) == []
     assert scratch_folders(runner.pid) == []
+
+
+def test_ray_batches_group_jobs_by_their_bundles_and_spread_over_the_cpus(tmp_path: Path) -> None:
+    def job(i: int, *sources: str) -> RaceJob:
+        entrants = tuple(Entrant(f"c{k}", s) for k, s in enumerate((*sources, "pursuit", "gap")))
+        return RaceJob(f"j{i}", entrants, "oval", str(tmp_path))
+
+    a, b = str(tmp_path / "a.zip"), str(tmp_path / "b.zip")
+    jobs = [job(0, a), job(1, b, a), job(2, a, a), job(3, a), job(4, a, b), job(5), job(6, a)]
+    batches = [[j.job_id for j in batch] for batch in plan_batches(jobs, 2, 8)]
+    # {a}: j0 j2 j3 j6 in two batches (two CPUs); {a, b}: j1 j4; baselines only: j5
+    assert batches == [["j0", "j2"], ["j3", "j6"], ["j1"], ["j4"], ["j5"]]
+    # one CPU: batches of at most batch_size
+    one_bundle = [job(i, a) for i in range(7)]
+    assert [len(batch) for batch in plan_batches(one_bundle, 1, 3)] == [3, 3, 1]
 
 
 def test_the_executor_never_uses_a_fork_server() -> None:

@@ -148,9 +148,12 @@ import numpy as np
 class Policy:
     resets = 0  # per process: a reused sandbox keeps counting
 
+    def __init__(self, env_spec):
+        self.car = env_spec["car"]
+
     def reset(self, seed):
         Policy.resets += 1
-        print(f"reset number {Policy.resets}", flush=True)
+        print(f"reset number {Policy.resets} in the {self.car} car", flush=True)
 
     def act(self, obs):
         return np.array([0.0, 0.2], np.float32)
@@ -158,35 +161,43 @@ class Policy:
 
 
 @pytest.mark.slow
-def test_a_batch_reuses_each_bundles_sandbox_and_kills_it_at_the_end(tmp_path: Path) -> None:
-    """Two jobs with the same bundle: the second races in the first one's sandbox (its
-    policy process counts its second reset); a job's logs hold its own race's output only;
-    no sandbox folder of this process remains afterwards."""
+def test_the_executor_reuses_a_bundles_sandbox_between_jobs_and_leaves_nothing(
+    tmp_path: Path,
+) -> None:
+    """One job process (the real path of ``evaluate`` and the leaderboard worker): the
+    second job of the same bundle races in the first one's sandbox (its policy process
+    counts a second reset) and is handed over before the job queued ahead of it that races
+    another bundle; each policy is told its car; a job's logs hold its own race's output
+    only; no sandbox or job folder of this process remains afterwards."""
     import os
     import tempfile
 
-    from submissions.jobs import run_race_jobs
+    from submissions.executors import LocalExecutor
 
     bundle = python_bundle(tmp_path / "count.zip", COUNTING, "counter")
+    m = Manifest(
+        name="dr", author="t", format="python", entry="agent.py", env_version=ENV_VERSION,
+        car="deepracer",
+    )  # fmt: skip
+    deepracer = make_bundle(tmp_path / "dr.zip", m, {"agent.py": COUNTING.encode()})
     jobs = [
-        RaceJob(
-            f"batch{i}",
-            (Entrant("counter", str(bundle)), Entrant("pursuit", "pursuit")),
-            "oval",
-            str(tmp_path / "out"),
-            laps=1,
-            seed=i,
-            record_viser=False,
-        )
-        for i in range(2)
-    ]
-    first, second = run_race_jobs(jobs)
-    assert first.ok and second.ok
-    assert "reset number 1" in first.logs["car_0"]["output"]
-    assert "reset number 2" in second.logs["car_0"]["output"]
-    assert "reset number 1" not in second.logs["car_0"]["output"]
-    assert second.logs["car_0"]["sandbox_mode"] in ("bwrap", "seccomp-weak")
-    left = list(Path(tempfile.gettempdir()).glob(f"slipstream-sbx-{os.getpid()}-*"))
+        RaceJob(f"batch{i}", (Entrant("counter", str(b)),), "oval", str(tmp_path / "out"),
+                laps=1, seed=i, record_viser=False, solo=True)
+        for i, b in enumerate((bundle, deepracer, bundle))
+    ]  # fmt: skip
+    with LocalExecutor(workers=1, keep_warm_s=30.0) as executor:
+        results = list(executor.run(jobs))
+        assert executor.warm == 1  # kept, with its sandbox, for a next run
+    assert [r.job_id for r in results] == ["batch0", "batch2", "batch1"]
+    assert all(r.ok for r in results)
+    out = [r.logs["car_0"]["output"] for r in results]
+    assert "reset number 1 in the f1tenth car" in out[0]
+    assert "reset number 2 in the f1tenth car" in out[1]  # the same sandbox, a later job
+    assert "reset number 1" not in out[1]
+    assert "reset number 1 in the deepracer car" in out[2]
+    assert results[2].result["car"] == "deepracer"
+    assert results[1].logs["car_0"]["sandbox_mode"] in ("bwrap", "seccomp-weak")
+    left = list(Path(tempfile.gettempdir()).glob(f"slipstream-*-{os.getpid()}-*"))
     assert left == []
 
 

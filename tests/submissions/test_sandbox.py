@@ -104,12 +104,18 @@ def probe(
 ) -> tuple[SandboxedPolicy, dict[str, Any]]:
     policy = SandboxedPolicy(make_python_bundle(PROBE, name="probe", driver=False), limits)
     policy.reset(0)
-    # The probe printed before it said READY, but its output is drained by a thread of its
-    # own, which a loaded machine may not have run yet: give it a few seconds.
+    return policy, probe_facts(policy)
+
+
+def probe_facts(policy: SandboxedPolicy) -> dict[str, Any]:
+    """The facts the probe printed. It printed them before it said READY, but its output is
+    drained by a thread of its own, which a loaded machine may not have run yet: give it a
+    few seconds."""
     for _ in range(500):
         lines = [x for x in policy.output.splitlines() if x.startswith("PROBE ")]
         if lines:
-            return policy, json.loads(lines[0][len("PROBE ") :])
+            facts: dict[str, Any] = json.loads(lines[0][len("PROBE ") :])
+            return facts
         time.sleep(0.02)
     raise AssertionError(f"no PROBE line in {policy.output[-2000:]!r}")
 
@@ -176,9 +182,7 @@ def test_the_private_tmpfs_is_size_capped(mode: str, make_python_bundle: MakeBun
     policy = SandboxedPolicy(make_python_bundle(body, driver=False), limits)
     try:
         policy.reset(0)
-        facts = json.loads(
-            next(x for x in policy.output.splitlines() if x.startswith("PROBE "))[6:]
-        )
+        facts = probe_facts(policy)
     finally:
         policy.close()
     assert str(facts["tmp_fill"]).startswith("OSError")  # ENOSPC: 8 x 1 MiB in a 4 MiB tmpfs
