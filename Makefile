@@ -45,7 +45,7 @@ typecheck: install
 
 test: install lint typecheck
 	mkdir -p $(ARTIFACTS)
-	SLIPSTREAM_STRICT=$(STRICT) $(VENV)/bin/pytest -n 2 -q --doctest-modules tracks arena agents submissions leaderboard tests
+	SLIPSTREAM_STRICT=$(STRICT) $(VENV)/bin/pytest -n 2 -q --durations=25 --doctest-modules tracks arena agents submissions leaderboard tests
 
 # The main job: a leaderboard seeded with the baselines and the shipped checkpoint, a batch of
 # sandboxed races run by a local worker, served on http://127.0.0.1:8000 (Ctrl-C stops it).
