@@ -135,6 +135,11 @@ class TrainArgs:
     """--backend batch: a learner car that touches a wall retires at once (DNF, the DNF
     penalty). The batched simulator's soft walls let a car slide on; on pybullet a car that
     hits one at speed stops dead and often stays stuck, so a policy must learn to keep off"""
+    off_track_limit: float = 3.0
+    """s a learner car may spend off the road (all four wheels off) before it retires in
+    training (both backends; races keep the env's 3 s). A short one (0.3-0.5 s) teaches a
+    policy to keep on the road, where real tracks' walls stand right at the edge inside tight
+    hairpins; 0: DeepRacer's rule (off the road ends the episode)"""
     randomise: bool = True
     """random start point, direction and grid order every training episode"""
     backend: str = "bullet"
@@ -293,6 +298,8 @@ def _check(args: TrainArgs) -> None:
             raise PolicyError(f"{name} takes two numbers, min then max; got {pair}")
     if args.wall_ends_episode and args.backend != "batch":
         raise PolicyError("wall_ends_episode is for --backend batch (pybullet walls stop a car)")
+    if not 0.0 <= args.off_track_limit < math.inf:
+        raise PolicyError(f"off_track_limit must be 0 s or more, got {args.off_track_limit}")
     if not 0.0 <= args.procedural <= 1.0:
         raise PolicyError(f"procedural is a share in [0, 1], got {args.procedural}")
     if not args.net_arch or min(args.net_arch) < 1:
@@ -613,6 +620,7 @@ def _batch_vec_env(
         sim_kwargs={
             "uncertainty": uncertainty,
             "end_on_wall": args.wall_ends_episode,
+            "off_track_limit": args.off_track_limit,
             "car_params": car_params(args.car),
         },
     )
@@ -734,7 +742,8 @@ def procedural_callback(args: TrainArgs, vec_env: Any) -> Any:
                     view, old.n_envs, old.n_cars, old.laps, device=old.device,
                     random_starts=old.random_starts, seed=int(rng.integers(0, 2**31 - 1)),
                     uncertainty=old.uncertainty, end_on_wall=old.rules.end_on_wall,
-                    car_params=old.params,
+                    car_params=old.params, off_track_limit=old.off_track_limit,
+                    stuck_time=old.stuck_time,
                 )  # fmt: skip
                 new.nature = old.nature
                 vec_env.sims[k] = new
@@ -747,6 +756,18 @@ def procedural_callback(args: TrainArgs, vec_env: Any) -> Any:
                 vec_env._lengths[lo:hi] = 0
 
     return Redraw()
+
+
+def training_env_kwargs(args: TrainArgs, env_kwargs: dict[str, Any]) -> dict[str, Any]:
+    """The pybullet training envs' arguments: ``env_kwargs`` (the evaluation races' own) plus
+    the training-only rules: ``--off-track-limit`` and the model uncertainty (evaluation and
+    the checkpoint stay nominal)."""
+    out = dict(env_kwargs, off_track_limit=args.off_track_limit)
+    if args.uncertainty != "nominal":
+        from agents.robustness import training_uncertainty  # noqa: PLC0415 - heavy
+
+        out["uncertainty"] = training_uncertainty(args.uncertainty)
+    return out
 
 
 def run_name_for(args: TrainArgs) -> str:
@@ -787,12 +808,7 @@ def main(args: TrainArgs) -> dict[str, Any]:
     eval_tracks = training_tracks(args, args.eval_tracks or args.tracks)
     # The env defaults (vector obs, continuous actions) with the run's car, by preset name.
     env_kwargs: dict[str, Any] = {"car": car_name(car_params(args.car))}
-    # Training envs may add model uncertainty; evaluation and the checkpoint stay nominal.
-    train_env_kwargs = dict(env_kwargs)
-    if args.uncertainty != "nominal":
-        from agents.robustness import training_uncertainty  # noqa: PLC0415 - heavy
-
-        train_env_kwargs["uncertainty"] = training_uncertainty(args.uncertainty)
+    train_env_kwargs = training_env_kwargs(args, env_kwargs)
 
     # Seeding: one block.
     random.seed(args.seed)
@@ -865,6 +881,7 @@ def main(args: TrainArgs) -> dict[str, Any]:
         "procedural_hairpin": args.procedural_hairpin,
         "procedural_width": args.procedural_width,
         "wall_ends_episode": args.wall_ends_episode,
+        "off_track_limit": args.off_track_limit,
         "n_envs": args.n_envs,
         "n_cars": args.n_cars,
         "n_learners": args.n_learners,

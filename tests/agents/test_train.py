@@ -235,3 +235,12 @@ def test_wall_ends_episode_is_refused_on_pybullet() -> None:
     with pytest.raises(PolicyError, match="wall_ends_episode"):
         _check(TrainArgs(wall_ends_episode=True, backend="bullet"))
     _check(TrainArgs(wall_ends_episode=True, backend="batch"))
+
+
+@pytest.mark.parametrize("limit", [-0.1, float("nan"), float("inf")])
+def test_off_track_limit_must_be_a_time(limit: float) -> None:
+    from agents.train import _check
+
+    with pytest.raises(PolicyError, match="off_track_limit"):
+        _check(TrainArgs(off_track_limit=limit))
+    _check(TrainArgs(off_track_limit=0.0))  # DeepRacer's rule
