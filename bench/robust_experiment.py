@@ -239,7 +239,20 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     p.add_argument("--device", default="numpy", help="numpy, torch:cpu or cuda")
     p.add_argument("--out", type=Path, default=Path("runs/robust_experiment"))
     p.add_argument("--json", type=Path, default=None, help="write every figure here")
+    p.add_argument("--plot", type=Path, default=None, help="draw the per-arm figures (PNG) here")
+    p.add_argument(
+        "--from-json",
+        type=Path,
+        default=None,
+        help="train and score nothing: print (and --plot) the figures of this result file",
+    )
     args = p.parse_args(argv)
+    if args.from_json is not None:
+        result = json.loads(args.from_json.read_text(encoding="utf-8"))
+        print_table(result["arms"])
+        if args.plot is not None:
+            plot_arms(result, args.plot)
+        return dict(result)
     from tracks import load_track
 
     held = set(args.eval_tracks) & set(args.train_tracks)
@@ -257,6 +270,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     result = {
         "command": "python bench/robust_experiment.py " + " ".join(argv or sys.argv[1:]),
         "budget_steps_per_run": args.steps,
+        "training": training_figures(args.out, runs),
         "train_tracks": args.train_tracks,
         "eval_tracks": args.eval_tracks,
         "runs": {arm: {str(s): v for s, v in seeds.items()} for arm, seeds in runs.items()},
@@ -265,7 +279,67 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(result, indent=2) + "\n", encoding="utf-8")
+    if args.plot is not None:
+        plot_arms(result, args.plot)
     return result
+
+
+def training_figures(out: Path, runs: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """Per run: the steps trained, the training wall time (s) and the machine, from its
+    ``summary.json`` (runs reused from an earlier start keep their own figures)."""
+    figures: dict[str, dict[str, Any]] = {}
+    for arm, seeds in runs.items():
+        for seed in seeds:
+            path = out / f"{arm}_s{seed}" / "summary.json"
+            if path.is_file():
+                training = json.loads(path.read_text(encoding="utf-8")).get("training", {})
+                figures[f"{arm}_s{seed}"] = {
+                    k: training.get(k) for k in ("steps", "wall_time_s", "machine")
+                }
+    return figures
+
+
+def plot_arms(result: dict[str, Any], path: Path) -> None:
+    """Three panels (nominal score, worst-10 % mean, DNF share): every seed's mean over the
+    evaluation tracks as a dot, the arm's mean with its 95 % t-interval as a bar."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    runs, arms = result["runs"], result["arms"]
+    keys = (
+        ("nominal", "nominal score, m/s"),
+        ("worst10_mean", "worst-10 % mean, m/s"),
+        ("dnf_share", "races not finished"),
+    )
+    fig, axes = plt.subplots(1, len(keys), figsize=(4.2 * len(keys), 3.6))
+    for ax, (key, label) in zip(axes, keys, strict=True):
+        for i, arm in enumerate(arms):
+            seeds = [float(np.mean([t[key] for t in run.values()])) for run in runs[arm].values()]
+            ax.scatter([i] * len(seeds), seeds, s=14, alpha=0.6, zorder=3)
+            ci = arms[arm][key]
+            ax.errorbar(
+                i + 0.15,
+                ci["mean"],
+                yerr=[[ci["mean"] - ci["lo"]], [ci["hi"] - ci["mean"]]],
+                fmt="o",
+                color="black",
+                capsize=4,
+            )
+        ax.set_xticks(range(len(arms)), list(arms))
+        ax.set_title(label, fontsize=10)
+        ax.grid(alpha=0.3)
+    steps = result.get("budget_steps_per_run")
+    fig.suptitle(
+        f"held-out tracks, full perturbation grid · {steps:,} agent-steps per run · "
+        "dots: seeds, bars: 95 % CI",
+        fontsize=10,
+    )
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
 
 
 if __name__ == "__main__":
