@@ -140,6 +140,11 @@ class TrainArgs:
     training (both backends; races keep the env's 3 s). A short one (0.3-0.5 s) teaches a
     policy to keep on the road, where real tracks' walls stand right at the edge inside tight
     hairpins; 0: DeepRacer's rule (off the road ends the episode)"""
+    runoff: float = 0.4
+    """m of run-off between the road edge and the walls in training (both backends; races
+    keep the env's 0.4 m). Compact real tracks (DeepRacer's) have walls right at the edge
+    where two stretches of road run close: a small run-off teaches a policy to keep a car's
+    width off the edge"""
     randomise: bool = True
     """random start point, direction and grid order every training episode"""
     backend: str = "bullet"
@@ -300,6 +305,8 @@ def _check(args: TrainArgs) -> None:
         raise PolicyError("wall_ends_episode is for --backend batch (pybullet walls stop a car)")
     if not 0.0 <= args.off_track_limit < math.inf:
         raise PolicyError(f"off_track_limit must be 0 s or more, got {args.off_track_limit}")
+    if not 0.0 <= args.runoff < math.inf:
+        raise PolicyError(f"runoff must be 0 m or more, got {args.runoff}")
     if not 0.0 <= args.procedural <= 1.0:
         raise PolicyError(f"procedural is a share in [0, 1], got {args.procedural}")
     if not args.net_arch or min(args.net_arch) < 1:
@@ -621,6 +628,7 @@ def _batch_vec_env(
             "uncertainty": uncertainty,
             "end_on_wall": args.wall_ends_episode,
             "off_track_limit": args.off_track_limit,
+            "runoff": args.runoff,
             "car_params": car_params(args.car),
         },
     )
@@ -743,7 +751,7 @@ def procedural_callback(args: TrainArgs, vec_env: Any) -> Any:
                     random_starts=old.random_starts, seed=int(rng.integers(0, 2**31 - 1)),
                     uncertainty=old.uncertainty, end_on_wall=old.rules.end_on_wall,
                     car_params=old.params, off_track_limit=old.off_track_limit,
-                    stuck_time=old.stuck_time,
+                    stuck_time=old.stuck_time, runoff=old.runoff,
                 )  # fmt: skip
                 new.nature = old.nature
                 vec_env.sims[k] = new
@@ -760,9 +768,9 @@ def procedural_callback(args: TrainArgs, vec_env: Any) -> Any:
 
 def training_env_kwargs(args: TrainArgs, env_kwargs: dict[str, Any]) -> dict[str, Any]:
     """The pybullet training envs' arguments: ``env_kwargs`` (the evaluation races' own) plus
-    the training-only rules: ``--off-track-limit`` and the model uncertainty (evaluation and
-    the checkpoint stay nominal)."""
-    out = dict(env_kwargs, off_track_limit=args.off_track_limit)
+    the training-only rules: ``--off-track-limit``, ``--runoff`` and the model uncertainty
+    (evaluation and the checkpoint stay nominal)."""
+    out = dict(env_kwargs, off_track_limit=args.off_track_limit, runoff=args.runoff)
     if args.uncertainty != "nominal":
         from agents.robustness import training_uncertainty  # noqa: PLC0415 - heavy
 
@@ -882,6 +890,7 @@ def main(args: TrainArgs) -> dict[str, Any]:
         "procedural_width": args.procedural_width,
         "wall_ends_episode": args.wall_ends_episode,
         "off_track_limit": args.off_track_limit,
+        "runoff": args.runoff,
         "n_envs": args.n_envs,
         "n_cars": args.n_cars,
         "n_learners": args.n_learners,

@@ -249,6 +249,7 @@ class BatchSim:
         self.layout = ObservationLayout(lidar_rays, k_opponents)
         self.max_range = DEFAULT_RANGE
         self.off_track_limit, self.stuck_time = off_track_limit, stuck_time
+        self.runoff = runoff
         self.auto_reset = auto_reset
         self.random_starts = random_starts
         self.race_distance = laps * self.track.length

@@ -237,10 +237,12 @@ def test_wall_ends_episode_is_refused_on_pybullet() -> None:
     _check(TrainArgs(wall_ends_episode=True, backend="batch"))
 
 
-@pytest.mark.parametrize("limit", [-0.1, float("nan"), float("inf")])
-def test_off_track_limit_must_be_a_time(limit: float) -> None:
+@pytest.mark.parametrize("bad", [-0.1, float("nan"), float("inf")])
+def test_off_track_limit_and_runoff_must_be_sizes(bad: float) -> None:
     from agents.train import _check
 
     with pytest.raises(PolicyError, match="off_track_limit"):
-        _check(TrainArgs(off_track_limit=limit))
-    _check(TrainArgs(off_track_limit=0.0))  # DeepRacer's rule
+        _check(TrainArgs(off_track_limit=bad))
+    with pytest.raises(PolicyError, match="runoff"):
+        _check(TrainArgs(runoff=bad))
+    _check(TrainArgs(off_track_limit=0.0, runoff=0.0))  # DeepRacer's rule; walls at the edge

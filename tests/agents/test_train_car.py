@@ -72,9 +72,11 @@ def test_both_backends_put_the_car_on_scaled_tracks() -> None:
     args = TrainArgs(
         backend="batch", car="deepracer", tracks=["bean"], procedural=0.5, n_cars=2, n_envs=2,
         procedural_length=[60.0, 80.0], procedural_hairpin=[0.5, 0.9], off_track_limit=0.4,
+        runoff=0.1,
     )  # fmt: skip
     vec = _batch_vec_env(args)
     assert all(sim.off_track_limit == sim.rules.off_track_limit == 0.4 for sim in vec.sims)
+    assert all(sim.runoff == 0.1 for sim in vec.sims)
     bean = load_track("bean")
     assert [sim.track.name for sim in vec.sims][::2] == ["bean@0.52", "bean@0.52-reversed"]
     assert vec.sims[0].track.length == pytest.approx(SCALE * bean.length)
@@ -91,16 +93,18 @@ def test_both_backends_put_the_car_on_scaled_tracks() -> None:
     assert redraw.drawn[0].endswith("@0.52")
     assert vec.sims[1].params == vec.sims[3].params == DEEPRACER
     assert vec.sims[1].rules.off_track_limit == 0.4  # and its training rules
+    assert vec.sims[1].runoff == 0.1
     vec.close()
     # pybullet: the learner and the baseline opponents drive the DeepRacer car, by the
     # training rules (and evaluation races by the env's own).
     kwargs = training_env_kwargs(args, {"car": "deepracer"})
-    assert kwargs == {"car": "deepracer", "off_track_limit": 0.4}
+    assert kwargs == {"car": "deepracer", "off_track_limit": 0.4, "runoff": 0.1}
     bullet = SelfPlayVecEnv(training_tracks(args), n_envs=1, n_cars=2, seed=0, env_kwargs=kwargs)
     try:
         bullet.reset()
         env = bullet._copies[0].env
         assert env is not None and env.params == DEEPRACER and env.off_track_limit == 0.4
+        assert env.runoff == 0.1
         assert env.base_track.name == "bean@0.52"
         opponent: Any = bullet._copies[0].opponents["car_1"]
         assert opponent.policy.params == DEEPRACER
