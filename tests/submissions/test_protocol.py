@@ -14,6 +14,7 @@ from submissions.protocol import (
     HEAD_MAX,
     HEADER,
     MAX_FRAME,
+    MAX_NDIM,
     MAX_TEXT,
     SEQ_MODULO,
     Kind,
@@ -167,3 +168,54 @@ def test_cap_text_keeps_short_text_and_cuts_long_text_to_the_byte() -> None:
     capped = cap_text(long, 4096)
     assert len(capped.encode()) <= 4096 and capped.startswith("é" * 100)
     assert "more bytes cut" in capped
+
+
+def test_frames_are_numbered_zero_unless_told_and_text_frames_pass_the_number_on() -> None:
+    """A frame without a sequence number is number 0 (what a policy's first answer matches);
+    the text and JSON encoders carry a given number through."""
+    assert decode_frame(encode(Kind.ACT, np.zeros(2, np.float32))).seq == 0
+    assert decode_frame(encode_text(Kind.ERROR, "x")).seq == 0
+    assert decode_frame(encode_json(Kind.READY, {"a": 1})).seq == 0
+    assert decode_frame(encode_json(Kind.READY, {"a": 1}, 7)).seq == 7
+    assert decode_frame(encode_text(Kind.ERROR, "x", 9)).seq == 9
+
+
+def test_no_array_is_an_empty_byte_frame() -> None:
+    frame = decode_frame(encode(Kind.RESET))
+    assert frame.array.dtype == np.uint8 and frame.array.shape == (0,)
+
+
+def test_the_axis_cap_is_inclusive_and_refusals_say_why() -> None:
+    ok = np.zeros((1,) * MAX_NDIM, np.float32)
+    assert decode_frame(encode(Kind.ACT, ok)).array.shape == ok.shape
+    with pytest.raises(ProtocolError, match=f"an array with {MAX_NDIM + 1} axes"):
+        encode(Kind.ACT, np.zeros((1,) * (MAX_NDIM + 1), np.float32))
+    with pytest.raises(ProtocolError, match="cannot send an array of dtype <U1"):
+        encode(Kind.ACT, np.array(["a"]))
+
+
+def test_text_that_is_not_valid_unicode_is_replaced_not_refused() -> None:
+    # A policy's error text may hold a lone surrogate (from a bytes-decoding accident):
+    # it still travels, the bad character replaced.
+    frame = decode_frame(encode_text(Kind.ERROR, "bad \ud800 text"))
+    assert bytes(frame.array) == b"bad ? text"
+
+
+@pytest.mark.parametrize("cut", ["in_shape", "in_payload"])
+def test_a_short_frame_says_how_long_the_whole_frame_is(cut: str) -> None:
+    """The host reads a frame in pieces: ``ShortFrame.length`` is how many bytes to wait for,
+    and the message says how many it has."""
+    data = encode(Kind.ACT, np.zeros((3, 4), np.float32))  # 16 + 2*8 shape bytes + 48
+    have = HEADER.size + 4 if cut == "in_shape" else len(data) - 5
+    with pytest.raises(ShortFrame) as err:
+        decode_frame(data[:have])
+    assert err.value.length == len(data) == HEADER.size + 16 + 48
+    assert str(err.value) == f"a frame of {len(data)} bytes in {have} bytes"
+
+
+def test_a_frame_with_bytes_after_it_says_both_lengths() -> None:
+    data = encode(Kind.ACT, np.zeros(4, np.float32))
+    with pytest.raises(
+        ProtocolError, match=f"^a frame of {len(data)} bytes in {len(data) + 3} bytes$"
+    ):
+        decode_frame(data + b"xyz")
