@@ -208,3 +208,22 @@ def test_export_records_preset_names_and_refuses_unknown_cars(tmp_path: Path) ->
     assert car_mismatch(meta, custom) is None
     with pytest.raises(CheckpointError, match="unknown car 'tamiya'"):
         export_sb3(model, tmp_path / "c.zip", name="c", env_config={"car": "tamiya"})
+
+
+SHIPPED_DEEPRACER = SHIPPED.with_name("ppo_deepracer.zip")
+
+
+def test_the_shipped_deepracer_policy_declares_its_car_and_laps_a_scaled_hairpin_track() -> None:
+    """``ppo_deepracer.zip`` records the DeepRacer car (a race with the 1/10 car warns) and,
+    with its car, finishes a lap of the hairpins track at DeepRacer scale on pybullet — the
+    tight bends that stopped the 1/10 policy with the small car."""
+    meta, _ = read_checkpoint(SHIPPED_DEEPRACER)
+    assert meta.car == "deepracer"
+    with pytest.warns(CarMismatchWarning, match="the deepracer car but races the f1tenth car"):
+        load_policy(SHIPPED_DEEPRACER, params=CarParams())
+    policy = load_policy(SHIPPED_DEEPRACER, params=DEEPRACER)
+    result, _ = run_race(
+        [policy], track=load_track("hairpins@0.52"), laps=1, seed=0, env_kwargs={"car": "deepracer"}
+    )
+    (car,) = result.cars
+    assert car.status == "finished", (car.status, car.dnf_reason)
