@@ -3,8 +3,9 @@
 1. A fresh service folder (``artifacts/demo/site`` by default: SQLite database, bundles,
    replays), deleted and made again on every run.
 2. A ``house`` user enters the three baselines (``pursuit``, ``gap``, ``random``; they race
-   in-process) and the shipped PPO checkpoint ``agents/data/ppo_racer.zip``, wrapped in a
-   submission bundle and uploaded like any user's (it races in the sandbox).
+   in-process) and the shipped PPO checkpoints (:data:`SHIPPED`: ``agents/data/ppo_racer.zip``
+   and the robust ``ppo_robust.zip``), each wrapped in a submission bundle and uploaded like
+   any user's (they race in the sandbox).
 3. A local worker runs the validation races and then ``--races`` ranked races picked by the
    matchmaker, recording a replay and a 3D ``.viser`` file for each (progress bar).
 4. The leaderboard is printed (a table, or ``--json``), then the site is served on
@@ -26,7 +27,16 @@ from typing import Any
 from leaderboard.errors import LeaderboardError
 
 DEFAULT_DIR = Path("artifacts/demo/site")
-CHECKPOINT = Path(__file__).resolve().parents[1] / "agents" / "data" / "ppo_racer.zip"
+SHIPPED_DIR = Path(__file__).resolve().parents[1] / "agents" / "data"
+# The shipped checkpoints the demo enters (submission name -> file, description).
+SHIPPED = {
+    "ppo_racer": (SHIPPED_DIR / "ppo_racer.zip", "the shipped PPO checkpoint (nominal)"),
+    "ppo_robust": (
+        SHIPPED_DIR / "ppo_robust.zip",
+        "the shipped robust PPO checkpoint (trained under domain randomisation)",
+    ),
+}
+CHECKPOINT = SHIPPED["ppo_racer"][0]
 MARKER = ".slipstream-demo"  # marks a folder this command made, so it may delete it
 HOUSE = "house"
 ENV_KEYS = ("lidar_rays", "k_opponents")  # a checkpoint's env settings a manifest can declare
@@ -70,18 +80,20 @@ def fresh_dir(path: Path) -> Path:
     return path
 
 
-def checkpoint_bundle(out: Path, author: str = HOUSE) -> Path:
-    """The shipped PPO checkpoint wrapped in a submission bundle (zip) at ``out``."""
+def checkpoint_bundle(out: Path, author: str = HOUSE, name: str = "ppo_racer") -> Path:
+    """The shipped checkpoint ``name`` (a key of :data:`SHIPPED`) wrapped in a submission
+    bundle (zip) at ``out``."""
     import zipfile
 
     from arena.version import ENV_VERSION
     from submissions.bundle import Manifest, make_bundle
 
-    with zipfile.ZipFile(CHECKPOINT) as zf:
+    checkpoint, description = SHIPPED[name]
+    with zipfile.ZipFile(checkpoint) as zf:
         meta = json.loads(zf.read("meta.json"))
     declared = {k: int(v) for k, v in meta.get("env_config", {}).items() if k in ENV_KEYS}
     manifest = Manifest(
-        name="ppo_racer",
+        name=name,
         author=author,
         format="slipstream",
         entry="policy.zip",
@@ -89,13 +101,14 @@ def checkpoint_bundle(out: Path, author: str = HOUSE) -> Path:
         obs_mode=meta.get("obs_mode", "vector"),
         action_mode=meta.get("action_mode", "continuous"),
         env=declared,
-        description="the shipped PPO checkpoint (agents/data/ppo_racer.zip)",
+        description=f"{description} (agents/data/{checkpoint.name})",
     )
-    return make_bundle(out, manifest, {"policy.zip": CHECKPOINT})
+    return make_bundle(out, manifest, {"policy.zip": checkpoint})
 
 
 def seed(settings: Any) -> list[str]:
-    """Create the house user and enter the baselines and the checkpoint; their names."""
+    """Create the house user and enter the baselines and the shipped checkpoints; their
+    names."""
     from leaderboard import auth
     from leaderboard.db import connect, session_scope
     from leaderboard.uploads import BASELINES, add_baseline, upload
@@ -105,10 +118,11 @@ def seed(settings: Any) -> list[str]:
         for baseline in BASELINES:
             add_baseline(session, settings, user=user, baseline=baseline)
         with tempfile.TemporaryDirectory(prefix="slipstream-demo-") as tmp:
-            bundle = checkpoint_bundle(Path(tmp) / "ppo_racer.zip")
-            with bundle.open("rb") as stream:
-                upload(session, settings, user=user, stream=stream)
-    return [*BASELINES, "ppo_racer"]
+            for name in SHIPPED:
+                bundle = checkpoint_bundle(Path(tmp) / f"{name}.zip", name=name)
+                with bundle.open("rb") as stream:
+                    upload(session, settings, user=user, stream=stream)
+    return [*BASELINES, *SHIPPED]
 
 
 def run_races(settings: Any, races: int, workers: int) -> Any:

@@ -14,7 +14,7 @@ import pytest
 
 pytest.importorskip("stable_baselines3")
 
-from agents.checkpoint import CheckpointError, read_checkpoint
+from agents.checkpoint import CheckpointError, read_checkpoint, save_checkpoint
 from agents.loading import (
     CarMismatchWarning,
     car_mismatch,
@@ -37,7 +37,7 @@ from arena.race import run_race
 from arena.sim import CarParams
 from tracks import load_track
 
-SHIPPED = Path(__file__).parents[2] / "agents" / "data" / "ppo_racer.zip"  # trained pre-presets
+SHIPPED = Path(__file__).parents[2] / "agents" / "data" / "ppo_racer.zip"
 SCALE = DEEPRACER.length / CarParams().length  # 0.52: the 1/18 car against the 1/10 one
 
 
@@ -176,16 +176,21 @@ def test_a_wrapped_deepracer_checkpoint_declares_its_car(
     assert checkpoint_car_mismatch(tmp_path / "dr.zip", "f1tenth") is None  # not a checkpoint
 
 
-def test_a_checkpoint_without_a_car_is_the_default_car() -> None:
-    # The shipped racer was exported before car presets: its env_config is {}.
-    meta, _ = read_checkpoint(SHIPPED)
+def test_a_checkpoint_without_a_car_is_the_default_car(tmp_path: Path) -> None:
+    # Checkpoints exported before car presets (the first shipped racer among them) have an
+    # env_config of {}: they drove the default car.
+    meta, tensors = read_checkpoint(SHIPPED)
+    assert meta.car == "f1tenth"
+    meta.env_config.pop("car", None)
+    legacy = save_checkpoint(tensors, meta, tmp_path / "legacy.zip")
+    meta, _ = read_checkpoint(legacy)
     assert "car" not in meta.env_config and meta.car == "f1tenth"
     with warnings.catch_warnings():
         warnings.simplefilter("error", CarMismatchWarning)
-        load_policy(SHIPPED, params=CarParams())
-        load_policy(SHIPPED)  # no race car given: nothing to compare
+        load_policy(legacy, params=CarParams())
+        load_policy(legacy)  # no race car given: nothing to compare
     with pytest.warns(CarMismatchWarning, match="the f1tenth car but races the deepracer car"):
-        load_policy(SHIPPED, params=DEEPRACER)
+        load_policy(legacy, params=DEEPRACER)
     # Hostile text in a meta.json's car stays on one line.
     meta.env_config["car"] = "x\nslipstream: error: fake"
     message = car_mismatch(meta, DEEPRACER)

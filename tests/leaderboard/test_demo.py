@@ -28,10 +28,12 @@ def test_checkpoint_bundle_passes_upload_validation(tmp_path: Path) -> None:
     from leaderboard.settings import Settings
     from leaderboard.uploads import validate_bundle
 
-    manifest = validate_bundle(
-        checkpoint_bundle(tmp_path / "b.zip"), Settings(data_dir=tmp_path / "data")
-    )
-    assert (manifest.name, manifest.format, manifest.author) == ("ppo_racer", "slipstream", "house")
+    for name in ("ppo_racer", "ppo_robust"):
+        manifest = validate_bundle(
+            checkpoint_bundle(tmp_path / f"{name}.zip", name=name),
+            Settings(data_dir=tmp_path / "data"),
+        )
+        assert (manifest.name, manifest.format, manifest.author) == (name, "slipstream", "house")
 
 
 @pytest.mark.slow
@@ -46,9 +48,10 @@ def test_demo_runs_races_and_ranks_everyone(
     )
     assert code == 0
     rows = json.loads(capsys.readouterr().out)
-    # The four entries passed their validation races; one ranked race was rated.
-    assert sorted(r["name"] for r in rows) == ["gap", "ppo_racer", "pursuit", "random"]
+    # The five entries passed their validation races; one ranked race was rated.
+    names = ["gap", "ppo_racer", "ppo_robust", "pursuit", "random"]
+    assert sorted(r["name"] for r in rows) == names
     assert sum(r["races"] for r in rows) >= 2
-    assert [r["rank"] for r in rows] == [1, 2, 3, 4]
+    assert [r["rank"] for r in rows] == [1, 2, 3, 4, 5]
     replays = sorted(p.name for p in (data / "replays").glob("*.viser"))
-    assert len(replays) == 5  # four validation races and one ranked race
+    assert len(replays) == 6  # five validation races and one ranked race
