@@ -70,6 +70,8 @@ bench: install
 # (which mode, which limits, which identity and paths the fallback gets): its mechanisms are
 # pinned by the hostile suite, whose sandboxed races take seconds per mutant. Then the report:
 # the score per module and every survivor with its verdict (bench/mutation_verdicts.json).
+# One OpenMP/MKL thread: mutmut forks its children from a process that has imported torch, and
+# a forked child whose parent had started torch's thread pool can hang (every mutant a timeout).
 MUTATE_JOBS ?= 1
 empty :=
 space := $(empty) $(empty)
@@ -86,6 +88,7 @@ mutate: install
 	mkdir -p $(ARTIFACTS)
 	set -f; for run in $(MUTATE); do \
 	  echo "mutmut run $${run//,/ }"; \
+	  OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 \
 	  $(VENV)/bin/mutmut run --max-children $(MUTATE_JOBS) $${run//,/ } >> $(ARTIFACTS)/mutmut.log 2>&1 \
 	    || { echo "mutmut failed on $$run: see $(ARTIFACTS)/mutmut.log"; exit 1; }; \
 	done
