@@ -20,6 +20,7 @@ from agents import checkpoint as ckpt
 from agents.checkpoint import (
     CHECKPOINT_FORMAT,
     CHECKPOINT_VERSION,
+    MAX_SPACE_ELEMENTS,
     CheckpointError,
     CheckpointMeta,
     TorchMLPPolicy,
@@ -232,8 +233,47 @@ def test_flipped_weight_byte_fails_the_checksum(exported: Path, tmp_path: Path) 
     raw = members(exported)
     weights = raw["weights.safetensors"]
     bad = write_zip(tmp_path / "t.zip", {**raw, "weights.safetensors": _flip(weights, -5)})
-    with pytest.raises(CheckpointError, match="weights checksum mismatch"):
+    recorded = json.loads(raw["meta.json"])["weights_sha256"]
+    actual = hashlib.sha256(_flip(weights, -5)).hexdigest()
+    # The whole message: where, both hashes' first 16 digits, and what it means.
+    message = (
+        f"{bad}: weights checksum mismatch: meta.json records sha256 {recorded[:16]}…, "
+        f"weights.safetensors hashes to {actual[:16]}… (modified or corrupted)"
+    )
+    with pytest.raises(CheckpointError) as err:
         read_checkpoint(bad)
+    assert str(err.value) == message
+    # The same bytes given as an upload are labelled "checkpoint".
+    with pytest.raises(CheckpointError) as err:
+        read_checkpoint(bad.read_bytes())
+    assert str(err.value) == message.replace(str(bad), "checkpoint")
+
+
+def test_every_refusal_names_the_file(exported: Path, tmp_path: Path) -> None:
+    """A refused file's message starts with its path: at the archive, meta.json and weights."""
+    raw = members(exported)
+    cases = {
+        "garbage.zip": b"not a zip at all",
+        "meta.zip": write_zip(tmp_path / "m", {**raw, "meta.json": b"{"}).read_bytes(),
+        "tensors.zip": write_zip(
+            tmp_path / "w",
+            {
+                "meta.json": with_checksum(raw["meta.json"], b"\x00" * 64),
+                "weights.safetensors": b"\x00" * 64,
+            },
+        ).read_bytes(),
+    }
+    for name, data in cases.items():
+        path = tmp_path / name
+        path.write_bytes(data)
+        with pytest.raises(CheckpointError) as err:
+            read_checkpoint(path)
+        assert str(err.value).startswith(f"{path}: "), str(err.value)
+
+
+def test_weights_come_back_as_float32(exported: Path) -> None:
+    _, tensors = read_checkpoint(exported)
+    assert tensors and all(t.dtype == np.float32 and t.flags.c_contiguous for t in tensors.values())
 
 
 def test_flipped_byte_in_the_archive_is_reported_corrupt(exported: Path, tmp_path: Path) -> None:
@@ -253,6 +293,16 @@ def _set(path: str, value: Any) -> Callable[[dict[str, Any]], None]:
         for key in parents:
             doc = doc[key]
         doc[last] = value
+
+    return edit
+
+
+def _both(
+    first: Callable[[dict[str, Any]], None], second: Callable[[dict[str, Any]], None]
+) -> Callable[[dict[str, Any]], None]:
+    def edit(doc: dict[str, Any]) -> None:
+        first(doc)
+        second(doc)
 
     return edit
 
@@ -284,7 +334,61 @@ META_TAMPERING: dict[str, tuple[Callable[[dict[str, Any]], None], str]] = {
     "bad checksum text": (_set("weights_sha256", "xyz"), "at weights_sha256"),
     "mode contradicts space": (_set("action_mode", "discrete"), "needs a Discrete action_space"),
     "only a format": (_only_format, r"at top level: '\w+' is a required property"),
+    # Cross-field rules (_check_consistency): each refusal's whole message, so a changed or
+    # lost message is a failure too.
+    "2-D action space": (
+        _set("action_space.shape", [1, 2]),
+        r"meta\.json: a Box action_space must be one-dimensional$",
+    ),
+    "squashed infinite actions": (
+        _both(_set("policy.squash_output", True), _set("action_space.low", ["-inf", -1.0])),
+        r"meta\.json: squash_output needs finite action bounds$",
+    ),
+    "space over the cap": (  # each axis within the schema's limit, their product not
+        _set("observation_space.shape", [257, MAX_SPACE_ELEMENTS // 256]),
+        rf"meta\.json observation_space has {257 * (MAX_SPACE_ELEMENTS // 256)} elements, "
+        "over the cap$",
+    ),
+    "space at the cap is only short of bounds": (
+        _set("observation_space.shape", [MAX_SPACE_ELEMENTS]),
+        rf"low/high need {MAX_SPACE_ELEMENTS} values",
+    ),
+    "one bound list short": (
+        lambda d: d["action_space"]["high"].pop(),
+        r"meta\.json action_space: low/high need 2 values for shape \(2,\), got 2/1$",
+    ),
+    "low above high": (
+        _set("action_space.low", [-1.0, 1.5]),
+        r"meta\.json action_space: a low bound exceeds its high bound$",
+    ),
+    "discrete observations": (
+        _set("observation_space", {"type": "Discrete", "n": 4}),
+        r"meta\.json observation_space must be a Box for an MLP policy$",
+    ),
+    "continuous mode, categorical output": (
+        _set("policy.output", "categorical_argmax"),
+        r"meta\.json: action_mode 'continuous' needs a Box action_space and output "
+        r"'gaussian_mean', got Box and 'categorical_argmax'$",
+    ),
+    "discrete mode, gaussian output": (
+        _both(
+            _set("action_mode", "discrete"),
+            _set("action_space", {"type": "Discrete", "n": 5}),
+        ),
+        r"meta\.json: action_mode 'discrete' needs a Discrete action_space and output "
+        r"'categorical_argmax', got Discrete and 'gaussian_mean'$",
+    ),
 }
+
+
+def test_equal_bounds_are_allowed(exported: Path, tmp_path: Path) -> None:
+    # A low bound equal to its high bound is a fixed value, not an error.
+    raw = members(exported)
+    doc = json.loads(raw["meta.json"])
+    doc["action_space"]["low"][0] = doc["action_space"]["high"][0]
+    path = write_zip(tmp_path / "t.zip", {**raw, "meta.json": json.dumps(doc).encode()})
+    meta, _ = read_checkpoint(path)
+    assert meta.action_space["low"][0] == meta.action_space["high"][0]
 
 
 @pytest.mark.parametrize("case", sorted(META_TAMPERING))
