@@ -103,10 +103,26 @@ def register(sub: Any) -> None:
     e.set_defaults(handler=export_command)
 
 
+def progress_bar(console: Any, description: str, unit: str = "") -> Any:
+    """A transient rich progress bar on ``console`` (a ``rich.console.Console``): the
+    ``description`` column (rich markup; ``{task.description}`` is the task's own), a bar,
+    ``done/total unit`` and the elapsed time. Use it as a context manager."""
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    count = "{task.completed}/{task.total}" + (f" {unit}" if unit else "")
+    return Progress(
+        TextColumn(description),
+        BarColumn(),
+        TextColumn(count),
+        TimeElapsedColumn(),
+        console=console,
+        transient=True,
+    )
+
+
 def race_command(args: argparse.Namespace) -> int:
     """Run ``slipstream race``."""
     from rich.console import Console
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     from agents.loading import load_policy
     from arena.race import run_race
@@ -126,14 +142,7 @@ def race_command(args: argparse.Namespace) -> int:
             pol.name = f"{pol.name}#{i}"
     to_stdout = args.json is not None and str(args.json) == "-"
     console = Console(stderr=to_stdout)
-    with Progress(
-        TextColumn("[bold]racing[/] {task.description}"),
-        BarColumn(),
-        TextColumn("{task.completed}/{task.total} steps"),
-        TimeElapsedColumn(),
-        console=console,
-        transient=True,
-    ) as bar:
+    with progress_bar(console, "[bold]racing[/] {task.description}", "steps") as bar:
         task = bar.add_task(f"{args.track}, {args.laps} laps", total=None)
 
         def progress(step: int, total: int) -> None:

@@ -101,8 +101,8 @@ def register(sub: Any) -> None:
 def robustness_command(args: argparse.Namespace) -> int:
     """Run ``slipstream robustness``."""
     from rich.console import Console  # noqa: PLC0415 - heavy, imported on use
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn  # noqa: PLC0415 - heavy, imported on use
 
+    from agents.cli import progress_bar  # noqa: PLC0415 - imports on use
     from agents.loading import load_policy  # noqa: PLC0415 - heavy, imported on use
     from agents.policy import PolicyError  # noqa: PLC0415 - heavy, imported on use
     from agents.robustness import evaluate_robustness, save_plot, save_report  # noqa: PLC0415 - heavy, imported on use
@@ -119,14 +119,7 @@ def robustness_command(args: argparse.Namespace) -> int:
     grid = {name: tuple(getattr(args, name)) for name in GRID}
     to_stdout = args.json is not None and str(args.json) == "-"
     console = Console(stderr=to_stdout)
-    with Progress(
-        TextColumn("[bold]{task.description}"),
-        BarColumn(),
-        TextColumn("{task.completed}/{task.total}"),
-        TimeElapsedColumn(),
-        console=console,
-        transient=True,
-    ) as bar:
+    with progress_bar(console, "[bold]{task.description}") as bar:
         tasks: dict[str, Any] = {}
 
         def progress(stage: str, done: int, total: int) -> None:

@@ -164,9 +164,8 @@ def summary_table(name: str, results: Sequence[Any]) -> Any:
 def evaluate_command(args: argparse.Namespace) -> int:
     """Run ``slipstream evaluate``."""
     from rich.console import Console
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from agents.cli import results_table
+    from agents.cli import progress_bar, results_table
     from submissions.bundle import open_bundle
     from submissions.executors import JOB_TIMEOUT_S, KEEP_WARM_S, make_executor
     from submissions.sandbox import allow_weak_sandbox, sandbox_mode
@@ -199,14 +198,7 @@ def evaluate_command(args: argparse.Namespace) -> int:
     results: list[Any] = []
     with (
         executor,
-        Progress(
-            TextColumn("[bold]evaluating[/] {task.description}"),
-            BarColumn(),
-            TextColumn("{task.completed}/{task.total} races"),
-            TimeElapsedColumn(),
-            console=console,
-            transient=True,
-        ) as bar,
+        progress_bar(console, "[bold]evaluating[/] {task.description}", "races") as bar,
     ):
         task = bar.add_task(f"{manifest.name}: validation", total=len(jobs))
         (validation,) = executor.run(jobs[:1])
