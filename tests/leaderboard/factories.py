@@ -16,7 +16,7 @@ from sqlalchemy.orm import Session
 
 from arena.version import ENV_VERSION
 from leaderboard import auth, matchmaking, queue, uploads
-from leaderboard.models import Race, User
+from leaderboard.models import Race, RaceEntry, Submission, User
 from leaderboard.settings import Settings
 from submissions.bundle import Manifest, make_bundle
 
@@ -141,3 +141,31 @@ def seed(
     matchmaking.schedule_ranked(session, settings, n_races, rng)
     session.commit()
     return subs, finish_queue(session, settings, rng)
+
+
+def submissions(db: Session, settings: Settings, n: int) -> list[Submission]:
+    """``n`` seeded submissions (no races), in id order."""
+    seed(db, settings, n_submissions=n, n_races=0)
+    return list(db.scalars(select(Submission).order_by(Submission.id)))
+
+
+def race_for(
+    subs: list[Submission],
+    cars: list[int] | None = None,
+    *,
+    kind: str = "ranked",
+    track: str = "oval",
+    laps: int = 1,
+) -> Race:
+    """A race (not yet added) where ``subs[k]`` drives car ``cars[k]`` (default: car k)."""
+    cars = list(range(len(subs))) if cars is None else cars
+    return Race(
+        kind=kind,
+        track=track,
+        laps=laps,
+        entries=[
+            RaceEntry(car=c, submission_id=s.id, version_id=s.active_version_id, name=s.name,
+                      source="x")
+            for s, c in zip(subs, cars, strict=True)
+        ],
+    )  # fmt: skip

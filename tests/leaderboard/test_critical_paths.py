@@ -38,23 +38,9 @@ from leaderboard.settings import Settings
 from tests.leaderboard import factories
 
 
-def _subs(db: Session, settings: Settings, n: int) -> list[Submission]:
-    factories.seed(db, settings, n_submissions=n, n_races=0)
-    return list(db.scalars(select(Submission).order_by(Submission.id)))
-
-
 def _race(db: Session, subs: list[Submission], cars: list[int], *, laps: int = 1) -> Race:
     """A ranked race where submission ``subs[k]`` drives car ``cars[k]``."""
-    race = Race(
-        kind="ranked",
-        track="oval",
-        laps=laps,
-        entries=[
-            RaceEntry(car=c, submission_id=s.id, version_id=s.active_version_id, name=s.name,
-                      source="x")
-            for s, c in zip(subs, cars, strict=True)
-        ],
-    )  # fmt: skip
+    race = factories.race_for(subs, cars, laps=laps)
     db.add(race)
     queue.enqueue(db, race)
     db.commit()
@@ -69,7 +55,7 @@ def _run(db: Session, race: Race, order: list[int], dnf: set[int] | None = None)
 
 
 def test_each_submission_gets_exactly_rate_of_its_own_rank(db: Session, settings: Settings) -> None:
-    subs = _subs(db, settings, 4)
+    subs = factories.submissions(db, settings, 4)
     # Distinct starting ratings, so a rating given to the wrong submission shows.
     start = [(30.0, 5.0), (25.0, SIGMA0), (20.0, 3.0), (27.0, 6.0)]
     for sub, (mu, sigma) in zip(subs, start, strict=True):
@@ -90,7 +76,7 @@ def test_each_submission_gets_exactly_rate_of_its_own_rank(db: Session, settings
 
 
 def test_a_live_lease_on_its_last_attempt_survives_expire(db: Session, settings: Settings) -> None:
-    subs = _subs(db, settings, 2)
+    subs = factories.submissions(db, settings, 2)
     race = _race(db, subs, [0, 1])
     job = db.scalar(select(Job).where(Job.race_id == race.id))
     assert job is not None
@@ -111,7 +97,7 @@ def test_a_live_lease_on_its_last_attempt_survives_expire(db: Session, settings:
 def test_an_expired_lease_with_attempts_left_is_reclaimed_not_failed(
     db: Session, settings: Settings
 ) -> None:
-    subs = _subs(db, settings, 2)
+    subs = factories.submissions(db, settings, 2)
     race = _race(db, subs, [0, 1])
     first = queue.claim(db, owner="w1", lease_s=1)
     assert first is not None
@@ -124,7 +110,7 @@ def test_an_expired_lease_with_attempts_left_is_reclaimed_not_failed(
 
 
 def test_a_heartbeat_keeps_the_job_unclaimable(db: Session, settings: Settings) -> None:
-    subs = _subs(db, settings, 2)
+    subs = factories.submissions(db, settings, 2)
     _race(db, subs, [0, 1])
     lease = queue.claim(db, owner="w1", lease_s=1)
     assert lease is not None
@@ -140,7 +126,7 @@ def test_a_heartbeat_keeps_the_job_unclaimable(db: Session, settings: Settings) 
 
 
 def test_a_new_version_restarts_sigma_and_keeps_mu(db: Session, settings: Settings) -> None:
-    subs = _subs(db, settings, 1)
+    subs = factories.submissions(db, settings, 1)
     sub = subs[0]
     sub.mu, sub.sigma = 31.0, 2.0
     sub.ordinal = ordinal(31.0, 2.0)
@@ -163,7 +149,7 @@ def test_a_new_version_restarts_sigma_and_keeps_mu(db: Session, settings: Settin
 
 
 def test_a_slower_lap_never_replaces_a_track_record(db: Session, settings: Settings) -> None:
-    subs = _subs(db, settings, 2)
+    subs = factories.submissions(db, settings, 2)
     fast = _race(db, subs, [0, 1])
     _run(db, fast, order=[0, 1])  # car 0 wins: lap 21.0, car 1: 22.0
     record = {r.submission_id: r.best_lap for r in db.scalars(select(TrackRecord))}
@@ -193,7 +179,7 @@ def test_rate_matches_openskill_for_uneven_ratings() -> None:
 
 
 def test_a_baseline_in_the_grid_ranks_but_is_not_rated(db: Session, settings: Settings) -> None:
-    subs = _subs(db, settings, 2)
+    subs = factories.submissions(db, settings, 2)
     race = Race(
         kind="ranked",
         track="oval",
@@ -218,7 +204,7 @@ def test_a_baseline_in_the_grid_ranks_but_is_not_rated(db: Session, settings: Se
 
 
 def test_a_submission_twice_in_one_race_is_rated_once(db: Session, settings: Settings) -> None:
-    subs = _subs(db, settings, 2)
+    subs = factories.submissions(db, settings, 2)
     race = _race(db, [subs[0], subs[0], subs[1]], [0, 1, 2])
     _run(db, race, order=[0, 2, 1])
     got = db.get(Submission, subs[0].id)
@@ -231,7 +217,7 @@ def test_a_submission_twice_in_one_race_is_rated_once(db: Session, settings: Set
 def test_races_and_wins_accumulate_and_an_all_dnf_race_has_no_winner(
     db: Session, settings: Settings
 ) -> None:
-    subs = _subs(db, settings, 2)
+    subs = factories.submissions(db, settings, 2)
     _run(db, _race(db, subs, [0, 1]), order=[0, 1])
     _run(db, _race(db, subs, [0, 1]), order=[0, 1])
     _run(db, _race(db, subs, [0, 1]), order=[0, 1], dnf={0, 1})
@@ -244,7 +230,7 @@ def test_races_and_wins_accumulate_and_an_all_dnf_race_has_no_winner(
 def test_queue_stats_count_every_status_from_zero(db: Session, settings: Settings) -> None:
     # What /health reports: every status, counted exactly (an absent status is 0).
     assert queue.stats(db) == {"queued": 0, "leased": 0, "done": 0, "failed": 0}
-    subs = _subs(db, settings, 2)  # their two validation races have run: 2 done
+    subs = factories.submissions(db, settings, 2)  # their two validation races have run: 2 done
     assert queue.stats(db) == {"queued": 0, "leased": 0, "done": 2, "failed": 0}
     assert queue.pending(db) == 0
     for _ in range(3):
@@ -270,7 +256,7 @@ def test_queue_stats_count_every_status_from_zero(db: Session, settings: Setting
 
 def test_a_lease_holds_up_to_its_expiry_instant(db: Session, settings: Settings) -> None:
     # Expired means strictly past the expiry time, for taking a job over and for failing it.
-    subs = _subs(db, settings, 2)
+    subs = factories.submissions(db, settings, 2)
     race = _race(db, subs, [0, 1])
     job = db.scalar(select(Job).where(Job.race_id == race.id))
     assert job is not None
@@ -291,7 +277,7 @@ def test_a_finished_job_with_a_stale_lease_time_is_never_claimed(
 ) -> None:
     # Only a *leased* job can be taken over: a done job whose row still carries a lease time
     # (written by an older worker, or a manual repair) stays done.
-    subs = _subs(db, settings, 2)
+    subs = factories.submissions(db, settings, 2)
     race = _race(db, subs, [0, 1])
     _run(db, race, order=[0, 1])
     job = db.scalar(select(Job).where(Job.race_id == race.id))
@@ -325,7 +311,7 @@ def test_a_validation_race_lost_on_its_last_attempt_rejects_the_version(
 
 
 def test_a_race_queued_without_a_priority_is_a_ranked_one(db: Session, settings: Settings) -> None:
-    subs = _subs(db, settings, 2)
+    subs = factories.submissions(db, settings, 2)
     race = _race(db, subs, [0, 1])  # enqueue(session, race): the defaults
     job = db.scalar(select(Job).where(Job.race_id == race.id))
     assert job is not None and job.priority == RANKED_PRIORITY and job.max_attempts == 3
@@ -349,7 +335,7 @@ class _Flaky:
 def test_a_locked_sqlite_claim_is_retried_with_growing_waits_then_gives_up(
     db: Session, settings: Settings, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    subs = _subs(db, settings, 2)
+    subs = factories.submissions(db, settings, 2)
     race = _race(db, subs, [0, 1])
     waits: list[float] = []
     monkeypatch.setattr(queue.time, "sleep", waits.append)
@@ -394,7 +380,7 @@ def test_a_claim_on_postgresql_takes_the_next_job_while_another_claim_holds_the_
     impatient = make_engine(pg_url, connect_args={"options": "-c lock_timeout=2000"})
     try:
         with make_sessionmaker(engine)() as db:
-            subs = _subs(db, settings, 2)
+            subs = factories.submissions(db, settings, 2)
             first, second = _race(db, subs, [0, 1]).id, _race(db, subs, [0, 1]).id
         with make_sessionmaker(engine)() as holder, make_sessionmaker(impatient)() as other:
             # A worker mid-claim: the first job's row is locked until it commits.
@@ -412,7 +398,7 @@ def test_a_claim_on_postgresql_takes_the_next_job_while_another_claim_holds_the_
 def test_a_job_done_after_a_failed_attempt_clears_its_error(
     db: Session, settings: Settings
 ) -> None:
-    subs = _subs(db, settings, 2)
+    subs = factories.submissions(db, settings, 2)
     race = _race(db, subs, [0, 1])
     first = queue.claim(db, owner="w1", lease_s=60)
     assert first is not None and queue.fail(db, first, "worker crashed")

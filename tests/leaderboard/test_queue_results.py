@@ -19,22 +19,8 @@ from leaderboard.settings import Settings
 from tests.leaderboard import factories
 
 
-def _subs(db: Session, settings: Settings, n: int) -> list[Submission]:
-    factories.seed(db, settings, n_submissions=n, n_races=0)
-    return list(db.scalars(select(Submission).order_by(Submission.id)))
-
-
 def _race(db: Session, subs: list[Submission], *, kind: str = "ranked", **job: int) -> Race:
-    race = Race(
-        kind=kind,
-        track="oval",
-        laps=2,
-        entries=[
-            RaceEntry(car=i, submission_id=s.id, version_id=s.active_version_id, name=s.name,
-                      source="x")
-            for i, s in enumerate(subs)
-        ],
-    )  # fmt: skip
+    race = factories.race_for(subs, kind=kind, laps=2)
     db.add(race)
     queue.enqueue(db, race, **job)
     db.commit()
@@ -49,7 +35,7 @@ def _job(db: Session, race: Race) -> Job:
 
 
 def test_complete_stores_every_field_of_the_result(db: Session, settings: Settings) -> None:
-    subs = _subs(db, settings, 2)
+    subs = factories.submissions(db, settings, 2)
     race = _race(db, subs)
     lease = queue.claim(db, owner="w", lease_s=30)
     assert lease is not None
@@ -89,7 +75,7 @@ def test_complete_stores_every_field_of_the_result(db: Session, settings: Settin
 
 
 def test_a_lost_lease_changes_nothing(db: Session, settings: Settings) -> None:
-    subs = _subs(db, settings, 2)
+    subs = factories.submissions(db, settings, 2)
     race = _race(db, subs)
     lease = queue.claim(db, owner="w1", lease_s=1)
     assert lease is not None
@@ -109,7 +95,7 @@ def test_a_lost_lease_changes_nothing(db: Session, settings: Settings) -> None:
 def test_claim_marks_the_race_running_and_takes_the_lowest_priority_oldest_first(
     db: Session, settings: Settings
 ) -> None:
-    subs = _subs(db, settings, 2)
+    subs = factories.submissions(db, settings, 2)
     first = _race(db, subs, priority=5)
     second = _race(db, subs, priority=5)
     urgent = _race(db, subs, priority=1)
@@ -123,7 +109,7 @@ def test_claim_marks_the_race_running_and_takes_the_lowest_priority_oldest_first
 def test_fail_requeues_until_the_third_attempt_then_fails_the_race(
     db: Session, settings: Settings
 ) -> None:
-    subs = _subs(db, settings, 2)
+    subs = factories.submissions(db, settings, 2)
     race = _race(db, subs)  # default: three attempts
     for attempt in (1, 2, 3):
         lease = queue.claim(db, owner="w", lease_s=30)
@@ -143,7 +129,7 @@ def test_fail_requeues_until_the_third_attempt_then_fails_the_race(
 def test_a_failed_validation_race_rejects_its_pending_versions_only(
     db: Session, settings: Settings
 ) -> None:
-    subs = _subs(db, settings, 2)  # both active, their versions validated
+    subs = factories.submissions(db, settings, 2)  # both active, their versions validated
     sub = subs[0]
     current = db.get(SubmissionVersion, sub.active_version_id)
     assert current is not None
@@ -181,7 +167,7 @@ def test_a_failed_validation_race_rejects_its_pending_versions_only(
 
 
 def test_a_failed_ranked_race_rejects_nothing(db: Session, settings: Settings) -> None:
-    subs = _subs(db, settings, 2)
+    subs = factories.submissions(db, settings, 2)
     race = _race(db, subs, max_attempts=1)
     lease = queue.claim(db, owner="w", lease_s=30)
     assert lease is not None

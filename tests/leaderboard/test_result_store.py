@@ -31,24 +31,10 @@ from leaderboard.settings import Settings
 from tests.leaderboard import factories
 
 
-def _subs(db: Session, settings: Settings, n: int) -> list[Submission]:
-    factories.seed(db, settings, n_submissions=n, n_races=0)
-    return list(db.scalars(select(Submission).order_by(Submission.id)))
-
-
 def _race(
     db: Session, subs: list[Submission], *, kind: str = "ranked", track: str = "oval"
 ) -> Race:
-    race = Race(
-        kind=kind,
-        track=track,
-        laps=1,
-        entries=[
-            RaceEntry(car=i, submission_id=s.id, version_id=s.active_version_id, name=s.name,
-                      source="x")
-            for i, s in enumerate(subs)
-        ],
-    )  # fmt: skip
+    race = factories.race_for(subs, kind=kind, track=track)
     db.add(race)
     db.flush()
     return race
@@ -66,7 +52,7 @@ def _store(db: Session, race: Race, result: dict, **kw: object) -> Race:
 def test_a_sparse_car_record_takes_the_documented_defaults(db: Session, settings: Settings) -> None:
     # The fields others read are required (agent, position, status); the rest may be absent,
     # as in a result written by an older worker.
-    subs = _subs(db, settings, 2)
+    subs = factories.submissions(db, settings, 2)
     race = _race(db, subs)
     full = factories.fake_result(race)["cars"][0]
     full.update(race_time=31.5, penalties=5.0, collisions=2, laps_completed=1)
@@ -87,7 +73,7 @@ def test_a_sparse_car_record_takes_the_documented_defaults(db: Session, settings
 def test_owner_logs_and_replay_events_are_stored_apart_from_the_public_result(
     db: Session, settings: Settings, tmp_path: Path
 ) -> None:
-    subs = _subs(db, settings, 2)
+    subs = factories.submissions(db, settings, 2)
     race = _race(db, subs)
     events = [{"t": 1.5, "type": "lap", "car": 0}, {"t": 3.0, "type": "finish", "car": 0}]
     replay = tmp_path / "race.replay.json.gz"
@@ -106,7 +92,7 @@ def test_owner_logs_and_replay_events_are_stored_apart_from_the_public_result(
 
 
 def test_cars_the_race_does_not_have_are_ignored(db: Session, settings: Settings) -> None:
-    subs = _subs(db, settings, 2)
+    subs = factories.submissions(db, settings, 2)
     race = _race(db, subs)
     result = factories.fake_result(race)
     stray = dict(result["cars"][0], agent="nature_car_0")  # an adversary, not a race entry
@@ -118,7 +104,7 @@ def test_cars_the_race_does_not_have_are_ignored(db: Session, settings: Settings
 
 
 def test_a_result_without_cars_is_stored_and_rates_nobody(db: Session, settings: Settings) -> None:
-    subs = _subs(db, settings, 2)
+    subs = factories.submissions(db, settings, 2)
     race = _race(db, subs)
     stored = _store(db, race, {"track": "oval", "error": "the simulator gave up"})
     assert stored.status == "finished" and stored.result == {
@@ -132,7 +118,7 @@ def test_a_result_without_cars_is_stored_and_rates_nobody(db: Session, settings:
 def test_records_are_per_track_and_name_the_version_that_set_them(
     db: Session, settings: Settings
 ) -> None:
-    subs = _subs(db, settings, 2)
+    subs = factories.submissions(db, settings, 2)
     first = _race(db, subs, track="bean")
     _store(db, first, factories.fake_result(first, order=[0, 1]))  # bean: 21.0 and 22.0
     on_oval = _race(db, subs, track="oval")
@@ -152,7 +138,7 @@ def test_records_are_per_track_and_name_the_version_that_set_them(
 def test_an_equal_lap_leaves_the_record_with_whoever_set_it_first(
     db: Session, settings: Settings
 ) -> None:
-    subs = _subs(db, settings, 2)
+    subs = factories.submissions(db, settings, 2)
     first = _race(db, subs)
     _store(db, first, factories.fake_result(first, order=[0, 1]))
     again = _race(db, subs)
@@ -162,7 +148,7 @@ def test_an_equal_lap_leaves_the_record_with_whoever_set_it_first(
 
 
 def test_a_faster_lap_moves_the_record_to_the_new_version(db: Session, settings: Settings) -> None:
-    subs = _subs(db, settings, 2)
+    subs = factories.submissions(db, settings, 2)
     first = _race(db, subs)
     _store(db, first, factories.fake_result(first, order=[0, 1]))
     old = db.get(SubmissionVersion, subs[0].active_version_id)
@@ -186,7 +172,7 @@ def test_a_faster_lap_moves_the_record_to_the_new_version(db: Session, settings:
 def test_a_robustness_run_scores_its_version_and_rates_nobody(
     db: Session, settings: Settings
 ) -> None:
-    subs = _subs(db, settings, 1)
+    subs = factories.submissions(db, settings, 1)
     run = _race(db, subs, kind="robustness")
     queue.enqueue(db, run)
     db.commit()
@@ -207,7 +193,7 @@ def test_failing_a_validation_race_with_a_baseline_car_looks_up_no_null_version(
 ) -> None:
     # The baseline opponent has no version: looking one up by a NULL key is an SQLAlchemy
     # warning today ("may raise an error in a future release"), so it must not happen.
-    subs = _subs(db, settings, 1)
+    subs = factories.submissions(db, settings, 1)
     version = db.get(SubmissionVersion, subs[0].active_version_id)
     assert version is not None
     version.status = "pending"
