@@ -17,14 +17,15 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from functools import cached_property
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.interpolate import CubicSpline
-from scipy.spatial import cKDTree
 
 from tracks.errors import TrackError
+
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -153,6 +154,8 @@ def tightening(points: FloatArray, centre: FloatArray, curvature: FloatArray) ->
     """
     raw = np.abs(three_point_curvature(points))
     bound = np.maximum(np.maximum(raw, np.roll(raw, 1)), np.roll(raw, -1))
+    from scipy.spatial import cKDTree  # noqa: PLC0415 - scipy loads on first use (CLI start-up)
+
     _, near = cKDTree(points).query(centre)
     kappa = np.abs(curvature)
     ratio = kappa / np.maximum(bound[np.asarray(near)], 1e-9)
@@ -194,6 +197,8 @@ def _cubic_closed_curve(
     closed = np.vstack([points, points[:1]])
     chord = np.linalg.norm(np.diff(closed, axis=0), axis=1)
     u = np.concatenate([[0.0], np.cumsum(chord)])
+    from scipy.interpolate import CubicSpline  # noqa: PLC0415 - scipy loads on first use
+
     spline = CubicSpline(u, closed, bc_type="periodic")
     # Arc length by dense sampling; invert it to place points at even spacing.
     dense_u = np.linspace(0.0, u[-1], max(20 * len(points), int(40 * u[-1] / spacing)) + 1)
@@ -367,7 +372,7 @@ class Track:
         p = _as_points(points)
         half = 0.5 * float(self.segment_lengths.max()) + margin
         reach = float(max(self.width_left.max(), self.width_right.max())) + half + margin
-        pairs = cKDTree(p).sparse_distance_matrix(self._tree, reach, output_type="ndarray")
+        pairs = type(self._tree)(p).sparse_distance_matrix(self._tree, reach, output_type="ndarray")
         hit = np.zeros(len(p), dtype=bool)
         if len(pairs) == 0:
             return hit
@@ -434,6 +439,8 @@ class Track:
 
     @cached_property
     def _tree(self) -> cKDTree:
+        from scipy.spatial import cKDTree  # noqa: PLC0415 - scipy loads on first use
+
         return cKDTree(self.centre)
 
     def __repr__(self) -> str:

@@ -7,7 +7,6 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.spatial import cKDTree
 
 from tracks.errors import TrackError
 
@@ -54,6 +53,8 @@ def segment_crossings(points: FloatArray) -> list[tuple[int, int]]:
     a, b = points, np.roll(points, -1, axis=0)
     mid = 0.5 * (a + b)
     reach = float(np.linalg.norm(b - a, axis=1).max())
+    from scipy.spatial import cKDTree  # noqa: PLC0415 - scipy loads on first use (CLI start-up)
+
     pairs = cKDTree(mid).query_pairs(r=reach, output_type="ndarray")
     if len(pairs) == 0:
         return []
@@ -114,6 +115,8 @@ def _near_pairs(
     c = track.centre
     wmax = float(max(track.width_left.max(), track.width_right.max()))
     window = 4.0 * wmax + 1.0  # m along the lap inside which nearness is just the bend itself
+    from scipy.spatial import cKDTree  # noqa: PLC0415 - scipy loads on first use
+
     pairs = cKDTree(c).query_pairs(r=2.0 * wmax, output_type="ndarray")
     empty = np.zeros(0, dtype=np.int64)
     if len(pairs) == 0:
