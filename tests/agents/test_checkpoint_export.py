@@ -455,7 +455,11 @@ def test_old_env_version_warning_points_at_the_caller(
     )
     with pytest.warns(UserWarning, match="env version 0.0-old") as record:
         TorchMLPPolicy.from_file(old)
-    assert [Path(w.filename).name for w in record] == [Path(__file__).name]
+    # Under mutmut the call goes through its trampoline, one frame between us and the module.
+    assert [Path(w.filename).name for w in record] in (
+        [Path(__file__).name],
+        ["trampoline.py"],
+    )
 
 
 def test_missing_torch_is_named_with_the_extra(
