@@ -575,14 +575,17 @@ def _copy_capped(src: IO[bytes], dst: IO[bytes] | None, cap: int, label: str) ->
 
 def _read_file(path: Path, cap: int, label: str) -> bytes:
     try:
-        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))
+        # O_NONBLOCK: opening a FIFO must not wait for a writer (reads of a file ignore it)
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_NOFOLLOW", 0))
     except FileNotFoundError:
         raise BundleError(f"no {label} in the bundle") from None
     except OSError as err:
         raise BundleError(f"{label}: cannot be read ({err.strerror}; a link?)") from None
+    # Checked on the descriptor, before a file object: fdopen refuses a folder with an OSError.
+    if not stat.S_ISREG(os.fstat(fd).st_mode):
+        os.close(fd)
+        raise BundleError(f"{label} is not a regular file")
     with os.fdopen(fd, "rb") as fh:
-        if not stat.S_ISREG(os.fstat(fh.fileno()).st_mode):
-            raise BundleError(f"{label} is not a regular file")
         return _copy_capped(fh, None, cap, label)
 
 
