@@ -8,6 +8,7 @@ import os
 import stat
 import subprocess
 import sys
+import threading
 import zipfile
 from pathlib import Path
 from typing import Any
@@ -16,6 +17,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+import submissions.bundle as bundle_module
 from arena.version import ENV_VERSION
 from submissions.bundle import (
     MANIFEST_NAME,
@@ -661,9 +663,18 @@ def test_read_manifest_refuses_a_missing_linked_odd_or_oversized_file(tmp_path: 
     (tmp_path / MANIFEST_NAME).mkdir()
     assert refusal(read_manifest, tmp_path) == "manifest.json is not a regular file"
     (tmp_path / MANIFEST_NAME).rmdir()
-    os.mkfifo(tmp_path / MANIFEST_NAME)  # no writer: opening it must not wait for one
-    assert refusal(read_manifest, tmp_path) == "manifest.json is not a regular file"
-    (tmp_path / MANIFEST_NAME).unlink()
+    fifo = tmp_path / MANIFEST_NAME
+    os.mkfifo(fifo)  # no writer: opening it must not wait for one
+    outcome: list[str] = []
+    reader = threading.Thread(target=lambda: outcome.append(refusal(read_manifest, tmp_path)))
+    reader.start()
+    reader.join(10)
+    if reader.is_alive():  # blocked in open(): a writer releases it, then fail
+        os.close(os.open(fifo, os.O_WRONLY | os.O_NONBLOCK))
+        reader.join()
+        pytest.fail("read_manifest waited for a writer on a FIFO")
+    assert outcome == ["manifest.json is not a regular file"]
+    fifo.unlink()
     (tmp_path / MANIFEST_NAME).write_bytes(raw)
     exact = BundleLimits(max_manifest_bytes=len(raw))
     assert read_manifest(tmp_path, exact) == Manifest.from_dict(manifest_doc())
@@ -1049,30 +1060,92 @@ def test_source_and_destination_refusals(tmp_path: Path) -> None:
     )
 
 
-def test_a_failed_extraction_into_an_existing_folder_empties_it(tmp_path: Path) -> None:
-    """The caller's empty folder stays (empty, ready for a retry); what was written into it,
-    files and folders, is gone."""
-    src = raw_zip(
-        tmp_path / "b.zip",
-        [
-            *good_members(),
-            ("lib/a/x.py", b"X = 1\n"),
-            ("top.py", b"T"),
-            ("z.bin", os.urandom(3000)),
-        ],
-    )
+def corrupt_zip(path: Path, name: str = "z.bin") -> Path:
+    """A bundle whose last member (``name``, after a folder and a file) fails its CRC check:
+    it fails mid-extraction, with files and folders already written."""
+    members = [*good_members(), ("lib/a/x.py", b"X = 1\n"), ("top.py", b"T")]
+    src = raw_zip(path, [*members, (name, os.urandom(3000))])
     data = bytearray(src.read_bytes())
     with zipfile.ZipFile(src) as zf:
-        info = zf.getinfo("z.bin")
-    data[info.header_offset + 30 + len("z.bin") + 100] ^= 0xFF  # inside z.bin's data: bad CRC
+        info = zf.getinfo(name)
+    data[info.header_offset + 30 + len(name) + 100] ^= 0xFF  # inside its data
     src.write_bytes(bytes(data))
+    return src
+
+
+CORRUPT = "z.bin: corrupt entry (Bad CRC-32 for file 'z.bin')"
+
+
+def test_a_failed_extraction_into_an_existing_folder_empties_it(tmp_path: Path) -> None:
+    """The caller's empty folder stays (empty, ready for a retry); what was written into it,
+    files and folders, is gone. A folder open_bundle created is removed."""
+    src = corrupt_zip(tmp_path / "b.zip")
     (tmp_path / "dest").mkdir()
-    assert refusal(open_bundle, src, tmp_path / "dest", env=ENV) == (
-        "z.bin: corrupt entry (Bad CRC-32 for file 'z.bin')"
-    )
+    assert refusal(open_bundle, src, tmp_path / "dest", env=ENV) == CORRUPT
     assert (tmp_path / "dest").is_dir() and tree(tmp_path / "dest") == set()
-    assert refusal(open_bundle, src, tmp_path / "new", env=ENV).startswith("z.bin: corrupt")
+    assert refusal(open_bundle, src, tmp_path / "new", env=ENV) == CORRUPT
     assert not (tmp_path / "new").exists()
+
+
+def test_a_clean_up_that_fails_never_hides_the_refusal(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Removing the half-written files may fail (a file already gone: a tmp cleaner ran
+    meanwhile); the caller still gets the BundleError saying what was wrong, not an OSError."""
+    src = corrupt_zip(tmp_path / "b.zip")
+    (tmp_path / "dest").mkdir()
+
+    def gone(path: Any, *args: Any, **kwargs: Any) -> None:
+        raise FileNotFoundError(2, "No such file or directory", str(path))
+
+    with monkeypatch.context() as m:
+        m.setattr(os, "unlink", gone)
+        assert refusal(open_bundle, src, tmp_path / "dest", env=ENV) == CORRUPT
+        assert refusal(open_bundle, src, tmp_path / "new", env=ENV) == CORRUPT
+
+
+def test_a_corrupt_entry_message_is_cut(tmp_path: Path) -> None:
+    """The decompressor's complaint is quoted up to 100 characters (a long name stays one
+    readable line)."""
+    name = "w" * 150 + ".bin"
+    src = corrupt_zip(tmp_path / "b.zip", name)
+    reason = f"Bad CRC-32 for file {name!r}"[:100]
+    assert refusal(open_bundle, src, tmp_path / "dest", env=ENV) == (
+        f"{name}: corrupt entry ({reason})"
+    )
+
+
+def test_a_folder_file_that_grows_while_it_is_copied_is_refused(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A bundle folder still being written (a training run saving into it): a file longer
+    than when it was checked is refused, not copied past its checked size."""
+    src = folder_bundle(tmp_path / "folder", {"sub/w.bin": b"w" * 1000})
+    scan = bundle_module._scan_folder
+
+    def scan_then_grow(folder: Path, limits: BundleLimits) -> Any:
+        members = scan(folder, limits)
+        (folder / "sub" / "w.bin").write_bytes(b"w" * 1500)  # the writer goes on
+        return members
+
+    monkeypatch.setattr(bundle_module, "_scan_folder", scan_then_grow)
+    assert refusal(open_bundle, src, tmp_path / "dest", env=ENV) == (
+        "sub/w.bin holds more than its declared or allowed 1000 bytes"
+    )
+    assert not (tmp_path / "dest").exists()
+
+
+def test_extraction_refuses_to_land_outside_even_past_the_name_check(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Defence in depth: were the name check ever to let a zip-slip name through, extraction
+    itself still refuses a target outside the destination, and removes what it wrote."""
+    monkeypatch.setattr(bundle_module, "unsafe_path", lambda name: None)
+    src = raw_zip(tmp_path / "b.zip", [*good_members(), ("../evil.py", b"x")])
+    assert refusal(open_bundle, src, tmp_path / "dest", env=ENV) == (
+        "entry '../evil.py' would land outside the bundle folder"
+    )
+    assert tree(tmp_path) == {"b.zip"}
 
 
 def test_encrypted_member_message(tmp_path: Path) -> None:
