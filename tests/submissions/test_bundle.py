@@ -1104,6 +1104,20 @@ def test_a_clean_up_that_fails_never_hides_the_refusal(
         assert refusal(open_bundle, src, tmp_path / "new", env=ENV) == CORRUPT
 
 
+def test_extraction_never_overwrites_even_past_the_duplicate_check(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Defence in depth: were the duplicate check ever to let a twin member through, the
+    second copy cannot replace the first one's file (created exclusively), and the bundle is
+    refused and removed."""
+    monkeypatch.setattr(bundle_module, "_check_counts", lambda *args: None)
+    src = raw_zip(tmp_path / "b.zip", [*good_members(), ("agent.py", b"import os  # twin")])
+    assert refusal(open_bundle, src, tmp_path / "dest", env=ENV).startswith(
+        "agent.py: corrupt entry ([Errno 17] File exists"
+    )
+    assert tree(tmp_path) == {"b.zip"}
+
+
 def test_a_corrupt_entry_message_is_cut(tmp_path: Path) -> None:
     """The decompressor's complaint is quoted up to 100 characters (a long name stays one
     readable line)."""
