@@ -1149,6 +1149,30 @@ def test_a_folder_file_that_grows_while_it_is_copied_is_refused(
     assert not (tmp_path / "dest").exists()
 
 
+def test_a_folder_file_swapped_for_a_link_after_the_check_is_not_followed(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The time-of-check/time-of-use attack on a folder bundle someone else can write: a
+    file checked as regular is swapped for a link to a host secret (of the same size) before
+    it is copied. The copy refuses the link instead of copying the secret into the bundle."""
+    secret = tmp_path / "secret"
+    secret.write_bytes(b"s" * 1000)
+    src = folder_bundle(tmp_path / "folder", {"sub/w.bin": b"w" * 1000})
+    scan = bundle_module._scan_folder
+
+    def scan_then_swap(folder: Path, limits: BundleLimits) -> Any:
+        members = scan(folder, limits)
+        (folder / "sub" / "w.bin").unlink()
+        (folder / "sub" / "w.bin").symlink_to(secret)
+        return members
+
+    monkeypatch.setattr(bundle_module, "_scan_folder", scan_then_swap)
+    assert refusal(open_bundle, src, tmp_path / "dest", env=ENV).startswith(
+        "sub/w.bin: corrupt entry ([Errno 40] Too many levels of symbolic links"
+    )
+    assert not (tmp_path / "dest").exists()
+
+
 def test_extraction_refuses_to_land_outside_even_past_the_name_check(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
