@@ -1129,24 +1129,49 @@ def test_a_corrupt_entry_message_is_cut(tmp_path: Path) -> None:
     )
 
 
-def test_a_folder_file_that_grows_while_it_is_copied_is_refused(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+@pytest.mark.parametrize("name", ["sub/w.bin", MANIFEST_NAME, "agent.py"])
+def test_a_folder_file_that_grows_after_the_check_is_refused(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, name: str
 ) -> None:
     """A bundle folder still being written (a training run saving into it): a file longer
-    than when it was checked is refused, not copied past its checked size."""
+    than when it was checked (the manifest, the entry or any other) is refused, never read
+    or copied past its checked size."""
     src = folder_bundle(tmp_path / "folder", {"sub/w.bin": b"w" * 1000})
+    size = (src / name).stat().st_size
     scan = bundle_module._scan_folder
 
     def scan_then_grow(folder: Path, limits: BundleLimits) -> Any:
         members = scan(folder, limits)
-        (folder / "sub" / "w.bin").write_bytes(b"w" * 1500)  # the writer goes on
+        with (folder / name).open("ab") as fh:
+            fh.write(b"\n" * 500)  # the writer goes on (still valid JSON and Python)
         return members
 
     monkeypatch.setattr(bundle_module, "_scan_folder", scan_then_grow)
     assert refusal(open_bundle, src, tmp_path / "dest", env=ENV) == (
-        "sub/w.bin holds more than its declared or allowed 1000 bytes"
+        f"{name} holds more than its declared or allowed {size} bytes"
     )
     assert not (tmp_path / "dest").exists()
+
+
+@pytest.mark.parametrize("name", [MANIFEST_NAME, "p" * 150 + ".py"])
+def test_a_corrupt_manifest_or_entry_is_refused_before_extraction(
+    tmp_path: Path, name: str
+) -> None:
+    """The manifest and a python entry are read (and CRC-checked) before anything is written;
+    the decompressor's complaint is quoted up to 100 characters."""
+    src = tmp_path / "b.zip"
+    with zipfile.ZipFile(src, "w", compression=zipfile.ZIP_STORED) as zf:  # a flipped byte
+        for member, data in good_members(entry="p" * 150 + ".py")[:1]:  # is a CRC error
+            zf.writestr(member, data)
+        zf.writestr("p" * 150 + ".py", AGENT_PY)
+        offset = zf.getinfo(name).header_offset + 30 + len(name) + 5  # inside its data
+    raw = bytearray(src.read_bytes())
+    raw[offset] ^= 0x01
+    src.write_bytes(bytes(raw))
+    assert refusal(open_bundle, src, tmp_path / "dest", env=ENV) == (
+        f"{name}: corrupt entry ({f'Bad CRC-32 for file {name!r}'[:100]})"
+    )
+    assert tree(tmp_path) == {"b.zip"}
 
 
 def test_a_folder_file_swapped_for_a_link_after_the_check_is_not_followed(
