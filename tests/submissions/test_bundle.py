@@ -3,6 +3,7 @@ with a clear :class:`BundleError`, and nothing is ever written outside the desti
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import stat
@@ -1116,6 +1117,33 @@ def test_extraction_never_overwrites_even_past_the_duplicate_check(
         "agent.py: corrupt entry ([Errno 17] File exists"
     )
     assert tree(tmp_path) == {"b.zip"}
+
+
+class Endless(io.RawIOBase):
+    """A source that never ends (a huge sparse manifest, a member that lies about its
+    size); reading more than 1 MiB of it fails the test instead of eating the memory."""
+
+    served = 0
+
+    def readable(self) -> bool:
+        return True
+
+    def readinto(self, buffer: Any) -> int:
+        self.served += len(buffer)
+        assert self.served <= 1 << 20, "read far past the cap"
+        buffer[:] = b"\0" * len(buffer)
+        return len(buffer)
+
+
+def test_copying_stops_right_after_the_cap() -> None:
+    """Whatever a source claims, at most the cap plus one 64 KiB read is taken from it before
+    the refusal (never the whole source at once)."""
+    source = Endless()
+    assert refusal(bundle_module._copy_capped, source, None, 1000, "big.bin") == (
+        "big.bin holds more than its declared or allowed 1000 bytes"
+    )
+    assert source.served <= 1000 + (1 << 16)
+    assert bundle_module._copy_capped(io.BytesIO(b"x" * 1000), None, 1000, "ok") == b"x" * 1000
 
 
 def test_a_corrupt_entry_message_is_cut(tmp_path: Path) -> None:
