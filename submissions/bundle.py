@@ -94,6 +94,9 @@ OPTIONAL = ("class_name", "env", "description", "car")
 DEFAULT_CAR = "f1tenth"  # = arena.cars.DEFAULT_CAR (tested equal; this module stays light)
 ZIP_MAGIC = b"PK\x03\x04"
 _CHUNK = 1 << 16
+# What zipfile raises on a damaged or hostile archive; NotImplementedError: a "version needed
+# to extract" above its own, or a member flagged as patched data or strongly encrypted.
+_ZIP_ERRORS = (zipfile.BadZipFile, zlib.error, EOFError, OSError, NotImplementedError)
 
 
 @dataclass(frozen=True)
@@ -474,7 +477,7 @@ def _scan_zip(src: Path, limits: BundleLimits) -> tuple[zipfile.ZipFile, list[_M
     try:
         zf = zipfile.ZipFile(src)
         infos = zf.infolist()
-    except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError) as err:
+    except (*_ZIP_ERRORS, ValueError) as err:
         raise BundleError(f"{label}: not a valid zip archive ({str(err)[:100]})") from None
     try:
         if len(infos) > limits.max_members:
@@ -604,7 +607,7 @@ def _read_member(zf: zipfile.ZipFile | None, m: _Member, cap: int, head: bool = 
             if head:
                 return fh.read(cap)
             return _copy_capped(fh, None, min(cap, m.size), m.name)
-    except (zipfile.BadZipFile, zlib.error, EOFError, OSError) as err:
+    except _ZIP_ERRORS as err:
         raise BundleError(f"{m.name}: corrupt entry ({str(err)[:100]})") from None
 
 
@@ -651,7 +654,7 @@ def _extract(zf: zipfile.ZipFile | None, members: list[_Member], dest: Path) -> 
         try:
             with _open_member(zf, m) as src, os.fdopen(os.open(target, flags, 0o644), "wb") as dst:
                 _copy_capped(src, dst, m.size, m.name)
-        except (zipfile.BadZipFile, zlib.error, EOFError, OSError) as err:
+        except _ZIP_ERRORS as err:
             raise BundleError(f"{m.name}: corrupt entry ({str(err)[:100]})") from None
 
 

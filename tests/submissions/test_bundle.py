@@ -569,7 +569,8 @@ def test_long_values_are_cut_in_messages() -> None:
 
 def test_a_manifest_built_in_python_is_checked_too() -> None:
     """``Manifest(...)`` validates like ``from_dict``: a wrong schema or env never exists."""
-    base = {"name": "t", "author": "a", "format": "sb3", "entry": "m.zip", "env_version": "0.3"}
+    base: dict[str, Any] = {"name": "t", "author": "a", "format": "sb3", "entry": "m.zip"}
+    base["env_version"] = "0.3"
     m = Manifest(**base)  # the other fields' defaults make a valid manifest
     assert (m.obs_mode, m.action_mode, m.class_name, m.car, m.schema) == (
         "vector", "continuous", "Policy", "f1tenth", 1,
@@ -1144,6 +1145,58 @@ def test_copying_stops_right_after_the_cap() -> None:
     )
     assert source.served <= 1000 + (1 << 16)
     assert bundle_module._copy_capped(io.BytesIO(b"x" * 1000), None, 1000, "ok") == b"x" * 1000
+
+
+def patch_central(src: Path, name: str, offset: int, value: bytes) -> None:
+    """Overwrite bytes of ``name``'s central directory record (APPNOTE 4.3.12 offsets)."""
+    data = bytearray(src.read_bytes())
+    pos = data.find(b"PK\x01\x02")
+    while data[pos + 46 : pos + 46 + len(name)] != name.encode():
+        pos = data.find(b"PK\x01\x02", pos + 4)
+    data[pos + offset : pos + offset + len(value)] = value
+    src.write_bytes(bytes(data))
+
+
+def test_a_zip_needing_a_newer_version_is_refused_not_crashed(tmp_path: Path) -> None:
+    """ "Version needed to extract" 10.0 (APPNOTE 4.4.3; zipfile reads up to 6.3): zipfile
+    raises NotImplementedError, which used to escape open_bundle as a traceback."""
+    src = raw_zip(tmp_path / "b.zip", good_members())
+    patch_central(src, "agent.py", 6, (100).to_bytes(2, "little"))
+    assert refusal(open_bundle, src, tmp_path / "dest", env=ENV) == (
+        "b.zip: not a valid zip archive (zip file version 10.0)"
+    )
+
+
+@pytest.mark.parametrize(
+    ("name", "flag", "reason"),
+    [
+        (MANIFEST_NAME, 0x40, "strong encryption (flag bit 6)"),
+        ("w.bin", 0x20, "compressed patched data (flag bit 5)"),
+    ],
+)
+def test_members_flagged_as_unsupported_are_refused_not_crashed(
+    tmp_path: Path, name: str, flag: int, reason: str
+) -> None:
+    """General-purpose flag bits zipfile cannot read (APPNOTE 4.4.4: bit 5 patched data,
+    bit 6 strong encryption) on the manifest (read before extraction) or another member
+    (read while extracting): a BundleError, and nothing left behind."""
+    src = raw_zip(tmp_path / "b.zip", [*good_members(), ("w.bin", b"w" * 100)])
+    patch_central(src, name, 8, flag.to_bytes(2, "little"))
+    assert refusal(open_bundle, src, tmp_path / "dest", env=ENV) == (
+        f"{name}: corrupt entry ({reason})"
+    )
+    assert tree(tmp_path) == {"b.zip"}
+
+
+def test_headers_claiming_nothing_compressed_are_a_bomb_by_total(tmp_path: Path) -> None:
+    """Members each under the per-member threshold whose headers claim 0 compressed bytes:
+    the whole archive's ratio is taken over 1 byte (no division by zero, no pass)."""
+    src = raw_zip(tmp_path / "b.zip", [("a.bin", b"a" * 10), ("b.bin", b"b" * 10)])
+    for name in ("a.bin", "b.bin"):
+        patch_central(src, name, 20, (0).to_bytes(4, "little") + (600_000).to_bytes(4, "little"))
+    assert refusal(open_bundle, src, tmp_path / "dest", env=ENV) == (
+        "b.zip: the archive expands 1200000:1, over the 100:1 limit (a zip bomb?)"
+    )
 
 
 def test_a_corrupt_entry_message_is_cut(tmp_path: Path) -> None:
