@@ -1139,12 +1139,14 @@ class Endless(io.RawIOBase):
 def test_copying_stops_right_after_the_cap() -> None:
     """Whatever a source claims, at most the cap plus one 64 KiB read is taken from it before
     the refusal (never the whole source at once)."""
-    source = Endless()
-    assert refusal(bundle_module._copy_capped, source, None, 1000, "big.bin") == (
-        "big.bin holds more than its declared or allowed 1000 bytes"
-    )
-    assert source.served <= 1000 + (1 << 16)
-    assert bundle_module._copy_capped(io.BytesIO(b"x" * 1000), None, 1000, "ok") == b"x" * 1000
+    for cap in (1000, 200_000):  # under one read, and over several
+        source = Endless()
+        assert refusal(bundle_module._copy_capped, source, None, cap, "big.bin") == (
+            f"big.bin holds more than its declared or allowed {cap} bytes"
+        )
+        assert source.served <= cap + (1 << 16)
+        exact = io.BytesIO(b"x" * cap)
+        assert bundle_module._copy_capped(exact, None, cap, "ok") == b"x" * cap
 
 
 def patch_central(src: Path, name: str, offset: int, value: bytes) -> None:
