@@ -1226,7 +1226,7 @@ def test_a_folder_file_that_grows_after_the_check_is_refused(
     def scan_then_grow(folder: Path, limits: BundleLimits) -> Any:
         members = scan(folder, limits)
         with (folder / name).open("ab") as fh:
-            fh.write(b"\n" * 500)  # the writer goes on (still valid JSON and Python)
+            fh.write(b"\n}\xff" * 100)  # the writer goes on: what was checked is gone
         return members
 
     monkeypatch.setattr(bundle_module, "_scan_folder", scan_then_grow)
