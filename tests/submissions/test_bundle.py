@@ -1199,6 +1199,10 @@ def test_headers_claiming_nothing_compressed_are_a_bomb_by_total(tmp_path: Path)
     assert refusal(open_bundle, src, tmp_path / "dest", env=ENV) == (
         "b.zip: the archive expands 1200000:1, over the 100:1 limit (a zip bomb?)"
     )
+    limits = BundleLimits(max_ratio=1_000_000)  # between 1.2 MB over 2 bytes and over 1
+    assert refusal(open_bundle, src, tmp_path / "dest", limits, ENV) == (
+        "b.zip: the archive expands 1200000:1, over the 1000000:1 limit (a zip bomb?)"
+    )
 
 
 def test_a_corrupt_entry_message_is_cut(tmp_path: Path) -> None:
