@@ -94,6 +94,9 @@ OPTIONAL = ("class_name", "env", "description", "car")
 DEFAULT_CAR = "f1tenth"  # = arena.cars.DEFAULT_CAR (tested equal; this module stays light)
 ZIP_MAGIC = b"PK\x03\x04"
 _CHUNK = 1 << 16
+# What zipfile raises on a damaged or hostile archive; NotImplementedError: a "version needed
+# to extract" above its own, or a member flagged as patched data or strongly encrypted.
+_ZIP_ERRORS = (zipfile.BadZipFile, zlib.error, EOFError, OSError, NotImplementedError)
 
 
 @dataclass(frozen=True)
@@ -474,7 +477,7 @@ def _scan_zip(src: Path, limits: BundleLimits) -> tuple[zipfile.ZipFile, list[_M
     try:
         zf = zipfile.ZipFile(src)
         infos = zf.infolist()
-    except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError) as err:
+    except (*_ZIP_ERRORS, ValueError) as err:
         raise BundleError(f"{label}: not a valid zip archive ({str(err)[:100]})") from None
     try:
         if len(infos) > limits.max_members:
@@ -575,14 +578,17 @@ def _copy_capped(src: IO[bytes], dst: IO[bytes] | None, cap: int, label: str) ->
 
 def _read_file(path: Path, cap: int, label: str) -> bytes:
     try:
-        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))
+        # O_NONBLOCK: opening a FIFO must not wait for a writer (reads of a file ignore it)
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_NOFOLLOW", 0))
     except FileNotFoundError:
         raise BundleError(f"no {label} in the bundle") from None
     except OSError as err:
         raise BundleError(f"{label}: cannot be read ({err.strerror}; a link?)") from None
+    # Checked on the descriptor, before a file object: fdopen refuses a folder with an OSError.
+    if not stat.S_ISREG(os.fstat(fd).st_mode):
+        os.close(fd)
+        raise BundleError(f"{label} is not a regular file")
     with os.fdopen(fd, "rb") as fh:
-        if not stat.S_ISREG(os.fstat(fh.fileno()).st_mode):
-            raise BundleError(f"{label} is not a regular file")
         return _copy_capped(fh, None, cap, label)
 
 
@@ -601,7 +607,7 @@ def _read_member(zf: zipfile.ZipFile | None, m: _Member, cap: int, head: bool = 
             if head:
                 return fh.read(cap)
             return _copy_capped(fh, None, min(cap, m.size), m.name)
-    except (zipfile.BadZipFile, zlib.error, EOFError, OSError) as err:
+    except _ZIP_ERRORS as err:
         raise BundleError(f"{m.name}: corrupt entry ({str(err)[:100]})") from None
 
 
@@ -648,7 +654,7 @@ def _extract(zf: zipfile.ZipFile | None, members: list[_Member], dest: Path) -> 
         try:
             with _open_member(zf, m) as src, os.fdopen(os.open(target, flags, 0o644), "wb") as dst:
                 _copy_capped(src, dst, m.size, m.name)
-        except (zipfile.BadZipFile, zlib.error, EOFError, OSError) as err:
+        except _ZIP_ERRORS as err:
             raise BundleError(f"{m.name}: corrupt entry ({str(err)[:100]})") from None
 
 

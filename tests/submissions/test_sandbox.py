@@ -6,8 +6,10 @@ from __future__ import annotations
 import json
 import logging
 import os
+import shutil
 import subprocess
 import sys
+import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -517,3 +519,247 @@ def test_a_sandbox_is_reaped_from_its_folder_alone(
         assert sid not in Path("/proc/self/mounts").read_text()
     finally:
         policy.close()
+
+
+# ---- policy decisions, exactly ----------------------------------------------------------
+# Which mode runs, what a result records, which limits are refused, and which identity and
+# paths the fallback gets: each pinned by value and by its whole message.
+
+
+def sandbox_refusal(fn: Any, *args: Any, **kwargs: Any) -> str:
+    """The message of the SandboxError that ``fn(*args, **kwargs)`` raises."""
+    with pytest.raises(SandboxError) as info:
+        fn(*args, **kwargs)
+    return str(info.value)
+
+
+@pytest.mark.parametrize(
+    ("field", "bad", "message"),
+    [
+        ("memory_mb", 1023, "memory_mb must be at least 1024 (torch needs it), got 1023"),
+        ("cpu_seconds", 0, "cpu_seconds must be at least 1, got 0"),
+        ("file_size_mb", 0, "file_size_mb must be at least 1, got 0"),
+        ("max_processes", 0, "max_processes must be at least 1, got 0"),
+        ("tmpfs_mb", -1, "tmpfs_mb must be at least 1, got -1"),
+        ("open_files", 15, "open_files must be at least 16 (Python needs them), got 15"),
+        ("step_deadline_s", 0.0, "step_deadline_s must be positive, got 0.0"),
+        ("step_deadline_s", float("nan"), "step_deadline_s must be positive, got nan"),
+        ("startup_s", 0, "startup_s must be positive, got 0"),
+        ("startup_s", -1.0, "startup_s must be positive, got -1.0"),
+        ("overage_s", -0.001, "overage_s must not be negative, got -0.001"),
+    ],
+)
+def test_each_limit_is_refused_one_past_its_bound(field: str, bad: float, message: str) -> None:
+    """A limit one step past its bound (or NaN for a deadline) is refused, naming it."""
+    assert sandbox_refusal(SandboxLimits, **{field: bad}) == message
+
+
+def test_limits_exactly_at_their_bounds_are_accepted() -> None:
+    """The bounds are inclusive (a zero overage bank means: no slack at all)."""
+    low = SandboxLimits(
+        memory_mb=1024, cpu_seconds=1, open_files=16, file_size_mb=1, max_processes=1,
+        tmpfs_mb=1, step_deadline_s=1e-6, startup_s=1e-6, overage_s=0.0,
+    )  # fmt: skip
+    assert (low.memory_mb, low.open_files, low.overage_s) == (1024, 16, 0.0)
+    SandboxLimits()  # the defaults pass
+
+
+@pytest.mark.parametrize(
+    ("value", "allowed"),
+    [("1", True), (" 1\n", True), ("", False), ("0", False), ("yes", False), ("11", False)],
+)
+def test_only_1_allows_the_weak_sandbox(
+    monkeypatch: pytest.MonkeyPatch, value: str, allowed: bool
+) -> None:
+    """SLIPSTREAM_ALLOW_WEAK_SANDBOX: exactly "1" (surrounding blanks ignored) allows it."""
+    monkeypatch.setenv(sandbox.WEAK_ENV, value)
+    assert sandbox.weak_sandbox_allowed() is allowed
+    monkeypatch.delenv(sandbox.WEAK_ENV)
+    assert sandbox.weak_sandbox_allowed() is False
+
+
+def test_allowing_the_weak_sandbox_says_what_results_record(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The operator's --allow-weak-sandbox is logged as a warning naming the recorded label."""
+    monkeypatch.delenv(sandbox.WEAK_ENV, raising=False)
+    with caplog.at_level(logging.WARNING, logger="submissions.sandbox"):
+        sandbox.allow_weak_sandbox()
+    assert os.environ[sandbox.WEAK_ENV] == "1"
+    assert [(r.levelno, r.getMessage()) for r in caplog.records] == [
+        (
+            logging.WARNING,
+            "--allow-weak-sandbox: where bubblewrap cannot run, untrusted policies run in the "
+            "weaker seccomp fallback; every such result is recorded as 'seccomp-weak'",
+        )
+    ]
+
+
+@pytest.mark.parametrize(
+    ("forced", "bwrap_ok", "allowed", "outcome"),
+    [
+        (None, True, "", "bwrap"),  # SANDBOX unset: auto
+        ("  ", True, "", "bwrap"),  # blank: auto
+        (" AUTO ", False, "1", "seccomp"),
+        ("Seccomp", True, "1", "seccomp"),  # case and blanks ignored; bwrap not preferred
+        (" BWRAP", True, "", "bwrap"),
+        ("chroot", True, "1", "SANDBOX='chroot': expected bwrap, seccomp or auto"),
+        ("bwrap", False, "1", "SANDBOX=bwrap but /usr/bin/bwrap cannot create namespaces here"),
+        (
+            None, False, "",
+            "bubblewrap cannot run here: the weaker seccomp fallback, and untrusted policies do "
+            "not run in it unless the operator passes --allow-weak-sandbox",
+        ),
+        (
+            "seccomp", True, "",
+            "SANDBOX=seccomp asks for the weaker seccomp fallback, and untrusted policies do not "
+            "run in it unless the operator passes --allow-weak-sandbox",
+        ),
+    ],
+)  # fmt: skip
+def test_which_mode_runs_and_why_not(
+    monkeypatch: pytest.MonkeyPatch, forced: str | None, bwrap_ok: bool, allowed: str, outcome: str
+) -> None:
+    """sandbox_mode under each SANDBOX value, bubblewrap state and operator permission: the
+    mode chosen, or the whole message of the refusal (fail closed)."""
+    if forced is None:
+        monkeypatch.delenv("SANDBOX", raising=False)
+    else:
+        monkeypatch.setenv("SANDBOX", forced)
+    monkeypatch.setenv(sandbox.WEAK_ENV, allowed)
+    monkeypatch.setattr(sandbox, "bwrap_works", lambda: bwrap_ok)
+    if outcome in sandbox.MODES:
+        assert sandbox_mode() == outcome
+        assert sandbox.mode_label(outcome) == {"bwrap": "bwrap", "seccomp": "seccomp-weak"}[outcome]
+    else:
+        assert sandbox_refusal(sandbox_mode) == outcome
+
+
+def test_bubblewrap_is_not_probed_when_the_fallback_is_forced(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """SANDBOX=seccomp never starts the bwrap probe (tests force it where bwrap hangs)."""
+    monkeypatch.setenv("SANDBOX", "seccomp")
+    monkeypatch.setenv(sandbox.WEAK_ENV, "1")
+
+    def no_probe() -> bool:
+        raise AssertionError("bwrap probed")
+
+    monkeypatch.setattr(sandbox, "bwrap_works", no_probe)
+    assert sandbox_mode() == "seccomp"
+
+
+def test_mode_labels() -> None:
+    """Only the fallback is relabelled; any other mode is recorded as itself."""
+    assert [sandbox.mode_label(m) for m in ("bwrap", "seccomp", "other")] == [
+        "bwrap", "seccomp-weak", "other",
+    ]  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("raw", "ids"),
+    [
+        (None, (65534, 65534)),
+        ("", (65534, 65534)),
+        ("2000", (2000, 2000)),
+        (" 2000:3000 ", (2000, 3000)),
+        ("1:1", (1, 1)),  # the lowest unprivileged ids
+        ("2000:", (2000, 2000)),
+    ],
+)
+def test_the_fallback_identity(
+    monkeypatch: pytest.MonkeyPatch, raw: str | None, ids: tuple[int, int]
+) -> None:
+    """Who the fallback runs as: nobody by default, or SLIPSTREAM_SANDBOX_UID=uid[:gid]."""
+    monkeypatch.setattr(sandbox.os, "geteuid", lambda: 0)
+    if raw is None:
+        monkeypatch.delenv(sandbox.UID_ENV, raising=False)
+    else:
+        monkeypatch.setenv(sandbox.UID_ENV, raw)
+    ident = sandbox.fallback_identity()
+    assert ident is not None and (ident.uid, ident.gid) == ids
+
+
+@pytest.mark.parametrize(
+    ("raw", "why"),
+    [
+        ("nobody", "expected uid or uid:gid"),
+        ("1:2:3", "expected uid or uid:gid"),
+        (":1000", "expected uid or uid:gid"),
+        ("0", "the sandbox never runs as uid or gid 0"),
+        ("1000:0", "the sandbox never runs as uid or gid 0"),
+        ("0:1000", "the sandbox never runs as uid or gid 0"),
+        ("-5", "the sandbox never runs as uid or gid 0"),
+    ],
+)
+def test_a_bad_fallback_uid_is_refused(monkeypatch: pytest.MonkeyPatch, raw: str, why: str) -> None:
+    """A malformed or root SLIPSTREAM_SANDBOX_UID is refused, quoting it."""
+    monkeypatch.setattr(sandbox.os, "geteuid", lambda: 0)
+    monkeypatch.setenv(sandbox.UID_ENV, raw)
+    assert sandbox_refusal(sandbox.fallback_identity) == f"SLIPSTREAM_SANDBOX_UID={raw!r}: {why}"
+
+
+def reachable_tree() -> Path:
+    """A fresh folder right under /tmp, o+x (pytest's tmp_path lies under a 0700 folder)."""
+    base = Path(tempfile.mkdtemp(dir="/tmp", prefix="reach-"))
+    base.chmod(0o711)
+    (base / "a").mkdir(mode=0o711)
+    (base / "a" / "f").write_text("x")
+    (base / "a" / "f").chmod(0o600)  # the path itself needs no permission for others
+    (base / "a" / "priv").mkdir(mode=0o700)
+    return base
+
+
+def test_others_can_reach_checks_every_folder_above(tmp_path: Path) -> None:
+    """A path is reachable for the dropped uid when every folder above it has o+x."""
+    base = reachable_tree()
+    try:
+        assert sandbox._others_can_reach(str(base / "a" / "f"))
+        assert sandbox._others_can_reach(str(base / "a" / "priv"))  # its own mode is not asked
+        assert not sandbox._others_can_reach(str(base / "a" / "priv" / "x"))  # 0700 above
+        assert not sandbox._others_can_reach(str(base / "a" / "missing"))
+        (base / "a").chmod(0o710)  # group may pass, others may not
+        assert not sandbox._others_can_reach(str(base / "a" / "f"))
+        assert not sandbox._others_can_reach(str(tmp_path / "x"))  # pytest's tree is 0700
+    finally:
+        (base / "a").chmod(0o755)
+        shutil.rmtree(base)
+
+
+def test_the_fallback_keeps_file_system_root_only_when_the_interpreter_needs_it(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """fs_root: the interpreter, its prefixes and our packages must all be reachable by the
+    dropped uid; else (a /root/.pyenv interpreter) the file-system uid stays 0."""
+    base = reachable_tree()
+    try:
+        monkeypatch.setattr(sandbox.os, "geteuid", lambda: 0)
+        monkeypatch.delenv(sandbox.UID_ENV, raising=False)
+        monkeypatch.setattr(sandbox.sys, "executable", str(base / "a" / "f"))
+        monkeypatch.setattr(sandbox, "python_paths", lambda: [str(base / "a")])
+        monkeypatch.setattr(sandbox, "package_dirs", lambda: {"arena": str(base / "a" / "priv")})
+        assert sandbox.fallback_identity() == sandbox.Identity(65534, 65534, fs_root=False)
+        for hidden in ("python_paths", "package_dirs"):
+            with monkeypatch.context() as m:
+                if hidden == "python_paths":
+                    m.setattr(sandbox, hidden, lambda: [str(base / "a" / "priv" / "lib")])
+                else:
+                    m.setattr(sandbox, hidden, lambda: {"arena": str(base / "a" / "priv" / "x")})
+                assert sandbox.fallback_identity() == sandbox.Identity(65534, 65534, fs_root=True)
+        monkeypatch.setattr(sandbox.sys, "executable", str(base / "a" / "priv" / "python"))
+        assert sandbox.fallback_identity() == sandbox.Identity(65534, 65534, fs_root=True)
+    finally:
+        shutil.rmtree(base)
+
+
+def test_the_fallback_reads_and_writes_only_its_lists(tmp_path: Path) -> None:
+    """Landlock's lists in the fallback: system folders, the interpreter, our packages, the
+    worker's app folder and the bundle read-only; only its work folder (and /dev/null)
+    writable. Nothing of /etc, /home, /root, /proc or /tmp."""
+    bundle, work, app = tmp_path / "bundle", tmp_path / "work", tmp_path / "app"
+    read, write = sandbox.fallback_paths(bundle, work, app)
+    assert read == [
+        "/usr", "/lib", "/lib64", "/bin", "/sys/devices/system/cpu", *sandbox.python_paths(),
+        *sandbox.package_dirs().values(), str(app), str(bundle), "/dev/urandom",
+    ]  # fmt: skip
+    assert write == [str(work), "/dev/null"]
