@@ -321,11 +321,12 @@ def test_overage_bank_is_drawn_down_then_the_policy_times_out(
 def test_cars_waiting_in_parallel_are_each_timed_from_their_own_send(
     make_python_bundle: MakeBundle,
 ) -> None:
-    # Each takes 0.2 s of a 0.35 s deadline, no bank: collected one after the other, the
-    # second would look 0.4 s late if its clock ran while the host waited for the first.
-    limits = replace(FAST, step_deadline_s=0.35, overage_s=0.0)
+    # Each takes 0.4 s of a 0.7 s deadline, no bank: collected one after the other, the
+    # second would look 0.8 s late if its clock ran while the host waited for the first.
+    # (0.3 s of slack for a correct clock: a loaded 2-core CI machine needs it.)
+    limits = replace(FAST, step_deadline_s=0.7, overage_s=0.0)
     bundles = [
-        make_python_bundle(SLEEPER.format(nap=0.2), name=f"s{i}", driver=False) for i in range(2)
+        make_python_bundle(SLEEPER.format(nap=0.4), name=f"s{i}", driver=False) for i in range(2)
     ]
     obs = np.zeros(make_env_spec()["obs_shape"], np.float32)
     policies = [SandboxedPolicy(b, limits) for b in bundles]
@@ -337,7 +338,7 @@ def test_cars_waiting_in_parallel_are_each_timed_from_their_own_send(
         for _ in range(3):
             for p in policies:
                 p.send(obs)
-            time.sleep(0.3)  # the host is busy elsewhere meanwhile
+            time.sleep(0.6)  # the host is busy elsewhere meanwhile
             actions = [p.receive() for p in policies]
             assert all(a.shape == (2,) for a in actions)
     finally:
