@@ -235,7 +235,7 @@ def test_episode_end_infos_for_a_retirement_and_its_cut_short_team_mate() -> Non
             assert info["track"] == "oval"
             assert info["laps_completed"] == env_infos[car]["laps_completed"] == 0
             assert info["episode"]["l"] == len(log)
-            assert info["episode"]["t"] >= 0.0
+            assert 0.0 <= info["episode"]["t"] < 60.0  # wall seconds since the reset
             assert info["episode"]["t"] == round(info["episode"]["t"], 3)
         assert parked["episode"]["r"] < -2.0  # the penalty (3) on the retiring step
         assert moving["episode"]["r"] > 0.5  # the moving car made progress
@@ -271,6 +271,84 @@ def test_a_time_limit_is_a_truncation_without_the_dnf_penalty() -> None:
         assert infos[0] == {} and vec._copies[0].length == 1
     finally:
         vec.close()
+
+
+def test_who_drives_which_agent_in_each_role() -> None:
+    """Racer role without a nature policy: natures get no action (the nominal point stays);
+    nature role: its own slot drives its nature, ``nature`` the other cars' natures,
+    ``racer`` every learner car, the pool the rest."""
+    lone = SelfPlayVecEnv(
+        ["oval"],
+        n_envs=1,
+        n_cars=2,
+        seed=1,
+        pool=OpponentPool(mix={"gap": 1.0}),
+        env_kwargs={"uncertainty": ADVERSARIAL},
+    )
+    try:
+        lone.reset()
+        assert set(lone._copies[0].opponents) == {"car_1"}
+        with spying(lone) as log:
+            lone.step(np.array([[0.0, 0.5]], np.float32))
+        sent = log[0][0]["actions"]
+        assert set(sent) == {"car_0", "car_1"}
+        infos = log[0][0]["out"][4]
+        assert infos["car_0"]["perturbation"]["friction"] == 1.0
+    finally:
+        lone.close()
+    vec = SelfPlayVecEnv(
+        ["oval"],
+        n_envs=1,
+        n_cars=3,
+        n_learners=2,
+        seed=1,
+        pool=OpponentPool(mix={"gap": 1.0}),
+        env_kwargs={"uncertainty": ADVERSARIAL},
+        role="nature",
+    )
+    vec.racer = Constant([0.0, 0.3], name="racer")
+    vec.nature = Constant([-1.0] * K, name="nature")
+    try:
+        vec.reset()
+        opponents = {a: d.name for a, d in vec._copies[0].opponents.items()}
+        assert opponents == {
+            "car_0": "racer",
+            "car_1": "racer",
+            "car_2": "gap",
+            "nature_car_2": "nature",
+        }
+        mine = np.array([[1.0] * K, [0.5] * K], np.float32)
+        with spying(vec) as log:
+            vec.step(mine)
+        sent = log[0][0]["actions"]
+        np.testing.assert_array_equal(sent["nature_car_0"], mine[0])
+        np.testing.assert_array_equal(sent["nature_car_1"], mine[1])
+        np.testing.assert_array_equal(sent["nature_car_2"], [-1.0] * K)
+        np.testing.assert_array_equal(sent["car_0"], np.float32([0.0, 0.3]))
+        np.testing.assert_array_equal(sent["car_1"], np.float32([0.0, 0.3]))
+        assert sent["car_2"].shape == (2,)
+    finally:
+        vec.close()
+
+
+def test_the_constructor_seed_makes_runs_repeat() -> None:
+    """Copies seeded by ``seed`` (without ``seed()``): the same seed, the same episodes;
+    another seed, others; ``laps`` reaches every env."""
+
+    def run(seed: int) -> tuple[np.ndarray, list[str]]:
+        vec = SelfPlayVecEnv(["oval", "bean", "hairpins"], n_envs=2, n_cars=2, seed=seed, laps=2)
+        try:
+            assert vec.get_attr("laps") == [2, 2]
+            rows = [vec.reset()]
+            rows += [vec.step(np.zeros((2, 2), np.float32))[0] for _ in range(3)]
+            return np.concatenate(rows), [c.track for c in vec._copies]
+        finally:
+            vec.close()
+
+    a, b, c = run(21), run(21), run(22)
+    np.testing.assert_array_equal(a[0], b[0])
+    assert a[1] == b[1]
+    assert not np.array_equal(a[0], c[0])
 
 
 def test_a_flat_action_array_is_one_row_per_slot() -> None:
@@ -451,6 +529,9 @@ def test_frozen_snapshots_are_detached_deterministic_copies() -> None:
     live = tiny_policy(4)
     with torch.no_grad():
         live.action_net.bias.fill_(3.0)  # a mean far outside [-1, 1]
+    # As straight after learn(): the last minibatch's distribution holds graph tensors,
+    # which deepcopy refuses unless the snapshot drops them first.
+    live.evaluate_actions(torch.zeros(3, 4), torch.zeros(3, 2))
     snap = SB3Driver.frozen(live, "snap-1")
     assert snap.name == "snap-1" and snap.policy is not live
     assert not snap.policy.training and snap.policy.optimizer is None
@@ -531,13 +612,14 @@ def test_procedural_draw_takes_its_ranges_and_retries_a_refused_seed() -> None:
     """Seed, length, difficulty, hairpin and width come from the ranges; a refused draw is
     followed by a new one; ``scale`` scales the result."""
     calls: list[tuple[Any, ...]] = []
+    scaled_by: list[float] = []
 
     def fake(seed: int, length: float, difficulty: float, hairpin: Any, width: Any) -> Any:
         calls.append((seed, length, difficulty, hairpin, width))
         if len(calls) == 1:
             raise TrackError("no circuit")
         track = mock.Mock()
-        track.scaled.return_value = "scaled"
+        track.scaled.side_effect = lambda s: scaled_by.append(s) or "scaled"
         return track
 
     proc = Procedural(length=(60, 61), difficulty=(0.3, 0.31), hairpin=(1.0, 1.1), width=(2, 2.1))
@@ -551,4 +633,5 @@ def test_procedural_draw_takes_its_ranges_and_retries_a_refused_seed() -> None:
         calls.clear()
         ordinary = Procedural(scale=0.52).draw(np.random.default_rng(1), attempts=2)
     assert ordinary == "scaled"
+    assert scaled_by == [0.52]
     assert calls[-1][3:] == (None, None)
