@@ -8,6 +8,7 @@ seeded streams) in milliseconds, so a mutation run kills what it can here first.
 from __future__ import annotations
 
 import re
+import warnings
 from typing import Any
 
 import numpy as np
@@ -362,6 +363,12 @@ def test_from_mapping_sets_cars_and_leaves_the_rest_nominal() -> None:
         ({"mass": [[1.0, 1.0], [1.0, 1.0]]}, "mass must be a finite number or one per car"),
         ({"motor": float("nan")}, "motor must be a finite number or one per car"),
         ({"motor": [1.0, float("inf")]}, "motor must be a finite number or one per car"),
+        # JSON-shaped junk in reset(options={"perturbation": ...}) from someone who read
+        # from_mapping: a word, null, an object, a list with a word in it.
+        ({"friction": "fast"}, "friction must be a finite number or one per car"),
+        ({"mass": None}, "mass must be a finite number or one per car"),
+        ({"motor": {}}, "motor must be a finite number or one per car"),
+        ({"latency": [1, "two"]}, "latency must be a finite number or one per car"),
         ({"friction": [1.0, 0.0]}, "friction in the perturbation must be positive"),
         ({"latency": 1.5}, f"latency in the perturbation must be whole steps in 0..{MAX_LATENCY}"),
         ({"latency": 11}, f"latency in the perturbation must be whole steps in 0..{MAX_LATENCY}"),
@@ -452,6 +459,10 @@ def test_reward_noise_is_a_centred_gaussian_truncated_at_clip_lambda() -> None:
     """N(0, λ) cut at ±c·λ by rejection: inside the cut, centred, λ-scaled; zeros when λ=0."""
     zero = reward_noise(UncertaintyConfig(), np.random.default_rng(0), (3, 2))
     assert zero.shape == (3, 2) and not zero.any()
+    unit = reward_noise(
+        UncertaintyConfig(reward=RewardBounds(noise=1.0)), np.random.default_rng(0), 1000
+    )
+    assert np.all(np.abs(unit) <= 2.0) and unit.std() == pytest.approx(0.8796, rel=0.1)
     lam = 0.4
     # A tight cut (0.5 λ) makes most draws rejections: every kept one is still N(0, λ).
     tight = UncertaintyConfig(reward=RewardBounds(noise=lam, noise_clip=0.5))
@@ -510,17 +521,57 @@ def test_nature_rate_limits_each_move_both_ways() -> None:
     down = nature_values(NATURE, -np.ones(3), at_hi, rate=0.25)
     np.testing.assert_allclose(up[[FRICTION, LATENCY, REWARD_NOISE]], [0.75, 1.0, -0.25])
     np.testing.assert_allclose(down[[FRICTION, LATENCY, REWARD_NOISE]], [1.05, 3.0, 0.25])
-    # A target within one step is reached exactly; rate 1 is a free move.
-    near = nature_values(NATURE, np.array([-0.9, -1.0, -1.0]), at_lo, rate=0.25)
-    assert near[FRICTION] == pytest.approx(0.63)
+    # A target within one step is reached exactly (the free map's value, to the last bit);
+    # rate 1 is a free move.
+    act = np.array([-0.9, -0.5, 0.3])
+    near = nature_values(NATURE, act, at_lo, rate=0.25)
+    far = nature_values(NATURE, act, at_lo, rate=1.0)
+    assert near[FRICTION] == far[FRICTION] == 0.6 + 0.5 * (1 - 0.9) * (1.2 - 0.6)
     np.testing.assert_array_equal(nature_values(NATURE, np.ones(3), at_lo, rate=1.0), at_hi)
+    # Back to an edge from anywhere inside the box within reach: exactly the edge.
+    rng = np.random.default_rng(0)
+    starts = nature_values(
+        NATURE, rng.uniform(-1, -0.6, (200, 3)), np.tile(nominal_values(), (200, 1))
+    )
+    for start in starts:
+        back = nature_values(NATURE, -np.ones(3), start, rate=0.25)
+        assert back[FRICTION] == 0.6 and back[LATENCY] == 0.0 and back[REWARD_NOISE] == -0.5
+
+
+def test_infinite_actions_clip_to_the_edges_without_overflow() -> None:
+    """±inf (a diverged policy) maps to the edges like ±1, with no floating-point warning
+    (the latency interval, 4 wide, would overflow an unclipped 1.8e308)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        low = nature_values(NATURE, np.array([-np.inf, -np.inf, -np.inf]), nominal_values())
+        high = nature_values(NATURE, np.array([np.inf, np.inf, np.inf]), nominal_values())
+    assert low[[FRICTION, LATENCY, REWARD_NOISE]].tolist() == [0.6, 0.0, -0.5]
+    assert high[[FRICTION, LATENCY, REWARD_NOISE]].tolist() == [1.2, 4.0, 0.5]
 
 
 def test_a_rate_limited_move_from_outside_the_box_lands_on_its_edge() -> None:
-    """A start outside the box (nominal friction 1 below a (1.1, 1.3) box) is clipped in."""
-    cfg = UncertaintyConfig(mode="adversarial", dynamics=DynamicsBounds(friction=(1.1, 1.3)))
-    out = nature_values(cfg, np.array([1.0]), nominal_values(), rate=0.1)
-    assert out[FRICTION] == 1.1
+    """A start outside the box (nominal friction 1 below a (1.1, 1.3) box, or above a
+    (0.5, 0.9) one) lands on the box's edge, however small the rate."""
+    below = UncertaintyConfig(mode="adversarial", dynamics=DynamicsBounds(friction=(1.1, 1.3)))
+    assert nature_values(below, np.array([1.0]), nominal_values(), rate=0.1)[FRICTION] == 1.1
+    assert nature_values(below, np.array([-1.0]), nominal_values(), rate=0.1)[FRICTION] == 1.1
+    above = UncertaintyConfig(mode="adversarial", dynamics=DynamicsBounds(friction=(0.5, 0.9)))
+    assert nature_values(above, np.array([-1.0]), nominal_values(), rate=0.1)[FRICTION] == 0.9
+    assert nature_values(above, np.array([1.0]), nominal_values(), rate=0.1)[FRICTION] == 0.9
+
+
+def test_float32_actions_map_in_float64() -> None:
+    """SB3 hands nature float32 actions and may hold float32 values: the map is computed,
+    and returned, in float64 (the same numbers as from float64 inputs)."""
+    act32 = np.array([0.1, -0.3, 0.7], np.float32)
+    cur32 = nominal_values().astype(np.float32)
+    out = nature_values(NATURE, act32, cur32, rate=0.5)
+    assert out.dtype == np.float64
+    np.testing.assert_array_equal(
+        out, nature_values(NATURE, act32.astype(np.float64), nominal_values(), rate=0.5)
+    )
+    x = float(act32[0])
+    assert out[FRICTION] == 0.6 + 0.5 * (x + 1.0) * (1.2 - 0.6)
 
 
 def test_applied_rounds_latency_only_and_copies() -> None:
@@ -529,6 +580,7 @@ def test_applied_rounds_latency_only_and_copies() -> None:
     raw[:, LATENCY] = [0.4, 1.5, 2.6]
     raw[:, FRICTION] = [0.61, 0.72, 0.83]
     out = applied(raw)
+    assert out.dtype == np.float64 and applied(raw.astype(np.float32)).dtype == np.float64
     assert out[:, LATENCY].tolist() == [0.0, 2.0, 3.0]
     assert out[:, FRICTION].tolist() == [0.61, 0.72, 0.83]
     assert raw[:, LATENCY].tolist() == [0.4, 1.5, 2.6]
@@ -557,8 +609,10 @@ def test_state_starts_at_nominal_pulled_into_the_box() -> None:
         state.values[..., INDEX["mass"]] == 0.9
     )
     state.raw[..., FRICTION] = 1.2
+    state.raw[..., INDEX["mass"]] = 0.6
     state.start(np.random.default_rng(0))
-    assert np.all(state.values[..., FRICTION] == 1.1)
+    assert np.all(state.values[..., FRICTION] == 1.1)  # nominal 1 below the box
+    assert np.all(state.values[..., INDEX["mass"]] == 0.9)  # and above it
     # A nominal state never moves.
     nominal = PerturbationState(UncertaintyConfig(), (1, 2))
     nominal.start(np.random.default_rng(0))
@@ -579,6 +633,10 @@ def test_state_start_draws_only_for_the_masked_races() -> None:
     same = state.values.copy()
     state.start(rng, envs=np.zeros(3, dtype=bool))
     np.testing.assert_array_equal(state.values, same)
+    # A 0/1 list is a mask too (not race indices).
+    state.start(rng, envs=[0, 0, 1])  # type: ignore[arg-type]
+    np.testing.assert_array_equal(state.values[:2], same[:2])
+    assert not np.array_equal(state.values[2, :, FRICTION], same[2, :, FRICTION])
 
 
 def test_state_fixed_takes_the_given_then_the_configs_perturbation() -> None:
@@ -606,15 +664,17 @@ def test_state_fixed_takes_the_given_then_the_configs_perturbation() -> None:
         ("episode", []),
         ("step", [1, 2, 3, 4, 5, 6, 7, 8]),
         ("every_k", [3, 6]),
+        ("every_k=1", [1, 2, 3, 4, 5, 6, 7, 8]),
     ],
 )
 def test_state_resample_boundaries(resample: str, redraws: list[int]) -> None:
     """Steps counted before each step: ``step`` redraws from t=1, ``every_k`` at t=k, 2k…;
     the reward noise is new on every step in every schedule."""
+    resample, _, k = resample.partition("=")
     cfg = UncertaintyConfig(
         mode="sample",
         resample=resample,  # type: ignore[arg-type]
-        every_k=3,
+        every_k=int(k or 3),
         dynamics=DynamicsBounds(friction=(0.6, 1.2)),
         reward=RewardBounds(noise=0.1),
     )
@@ -655,6 +715,15 @@ def test_state_resamples_each_race_on_its_own_step_count() -> None:
     ]
     assert np.all(state.values[:, 0, REWARD_NOISE] != before[:, 0, REWARD_NOISE])
     assert state.advance(rng, np.array([1, 5, 6, 9])) is False
+    # Drawn once per episode: every race's reward noise is still new on every step.
+    once = UncertaintyConfig("sample", dynamics=cfg.dynamics, reward=cfg.reward)
+    batch = PerturbationState(once, (3, 2))
+    batch.start(rng)
+    for t in range(3):
+        before = batch.values.copy()
+        assert batch.advance(rng, t) is False
+        np.testing.assert_array_equal(batch.values[..., FRICTION], before[..., FRICTION])
+        assert np.all(batch.values[..., REWARD_NOISE] != before[..., REWARD_NOISE])
 
 
 def test_state_nature_acts_at_the_first_step_and_then_as_configured() -> None:
