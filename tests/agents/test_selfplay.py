@@ -409,7 +409,7 @@ def test_slot_indices_map_to_their_copies() -> None:
         assert vec.get_attr("render_mode") == [None] * 4
         assert vec.get_attr("render_mode", [1, 2]) == [None, None]
         # Before any reset the copies answer with their first track's env.
-        assert vec.get_attr("n_cars", 3) == [2]
+        assert [t.name for t in vec.get_attr("base_track", [0, 3])] == ["oval", "oval"]
         vec.reset()
         vec.set_attr("marker", "b", indices=[2, 3])
         vec.set_attr("marker", "a", indices=0)
@@ -417,9 +417,9 @@ def test_slot_indices_map_to_their_copies() -> None:
         tracks = [c.track for c in vec._copies]
         names = vec.env_method("__getattribute__", "base_track")
         assert [t.name for t in names] == [tracks[0], tracks[0], tracks[1], tracks[1]]
-        assert vec.env_method("observation_space", agent="car_1", indices=[3])[0].shape == (
-            vec.observation_space.shape
-        )
+        spaces_of = vec.env_method("observation_space", agent="car_1", indices=[3])
+        assert len(spaces_of) == 1 and spaces_of[0].shape == vec.observation_space.shape
+        assert len(vec.env_method("__getattribute__", "laps", indices=2)) == 1
         assert vec.env_is_wrapped(object, indices=[0, 1]) == [False, False]
     finally:
         vec.close()
@@ -635,3 +635,95 @@ def test_procedural_draw_takes_its_ranges_and_retries_a_refused_seed() -> None:
     assert ordinary == "scaled"
     assert scaled_by == [0.52]
     assert calls[-1][3:] == (None, None)
+
+
+def test_snapshot_actions_are_float32_in_the_envs_box_whatever_the_policys_box() -> None:
+    """A policy over a wider float64 box (another project's recipe: ``Box(-3, 3)``) still
+    drives the env's cars with float32 actions in [-1, 1]; an SB3 policy without an
+    ``action_dist`` (SAC's) can be frozen too."""
+    torch = pytest.importorskip("torch")
+    from stable_baselines3.sac.policies import SACPolicy
+
+    wide = ActorCriticPolicy(
+        spaces.Box(-np.inf, np.inf, (4,), np.float32),
+        spaces.Box(-3.0, 3.0, (2,), np.float64),
+        lr_schedule=lambda _: 3e-4,
+        net_arch=[8],
+    )
+    with torch.no_grad():
+        wide.action_net.weight.zero_()
+        wide.action_net.bias.copy_(torch.tensor([2.5, -2.5]))
+    obs = np.zeros((3, 4), np.float32)
+    acts = SB3Driver.frozen(wide, "wide").act_batch(obs)
+    assert acts.dtype == np.float32
+    np.testing.assert_array_equal(acts, np.tile([1.0, -1.0], (3, 1)))
+    sac = SACPolicy(
+        spaces.Box(-np.inf, np.inf, (4,), np.float32),
+        spaces.Box(-1.0, 1.0, (2,), np.float32),
+        lr_schedule=lambda _: 3e-4,
+        net_arch=[8],
+    )
+    assert not hasattr(sac, "action_dist")
+    snap = SB3Driver.frozen(sac, "sac")
+    assert snap.act_batch(obs).shape == (3, 2)
+    assert np.all(np.abs(snap.act_batch(obs)) <= 1.0)
+
+
+def test_pool_draws_kinds_by_their_weights_with_the_envs_car() -> None:
+    """An 80/20 mix gives about 80/20 draws; baselines are built for the env's car."""
+    env = RacingEnv(track="oval", n_cars=2, car="deepracer")
+    try:
+        pool = OpponentPool(mix=parse_mix("pursuit=4,gap=1"))
+        rng = np.random.default_rng(1)
+        drawn = [pool.sample(rng, env).name for _ in range(500)]
+        assert 360 < drawn.count("pursuit") < 440 and drawn.count("gap") == 500 - drawn.count(
+            "pursuit"
+        )
+        for driver in {id(d): d for d in (pool.sample(rng, env) for _ in range(20))}.values():
+            assert isinstance(driver, PolicyDriver)
+            assert driver.policy.params == env.params  # type: ignore[attr-defined]
+    finally:
+        env.close()
+
+
+def test_procedural_draw_tries_twenty_times_by_default_over_many_seeds() -> None:
+    """Twenty refused draws by default; the seeds spread over 0..2³¹−2 (not a handful)."""
+    seeds: list[int] = []
+
+    def refuse(seed: int, *args: Any) -> Any:
+        seeds.append(seed)
+        raise TrackError("no")
+
+    with (
+        mock.patch("agents.selfplay.generate_track", side_effect=refuse),
+        pytest.raises(PolicyError, match=r"^no valid generated track in 20 draws;"),
+    ):
+        Procedural().draw(np.random.default_rng(0))
+    assert len(seeds) == 20
+    with (
+        mock.patch("agents.selfplay.generate_track", side_effect=refuse),
+        pytest.raises(PolicyError),
+    ):
+        Procedural().draw(np.random.default_rng(1), attempts=300)
+    assert len(set(seeds[20:])) == 300 and max(seeds) > 2**30
+
+
+def test_generated_envs_take_the_vec_envs_settings() -> None:
+    """A generated track's env has the VecEnv's car count, laps and env arguments."""
+    vec = SelfPlayVecEnv(
+        ["oval"],
+        n_envs=1,
+        n_cars=2,
+        seed=6,
+        laps=2,
+        procedural=Procedural(share=1.0, length=(60, 80)),
+        env_kwargs={"lidar_rays": 16},
+    )
+    try:
+        vec.reset()
+        env = vec._copies[0].generated
+        assert env is not None
+        assert (env.n_cars, env.laps, env.layout.n_rays) == (2, 2, 16)
+        assert vec.get_attr("laps") == [2]
+    finally:
+        vec.close()
