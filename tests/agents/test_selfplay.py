@@ -131,11 +131,14 @@ def test_every_slot_reward_is_its_cars_scaled_reward_with_the_sign_of_its_role(r
         dnf_steps = live_steps = 0
         with spying(vec) as log:
             for _ in range(120):
-                _, rewards, dones, infos = vec.step(actions)
+                obs_out, rewards, dones, infos = vec.step(actions)
+                assert obs_out.dtype == np.float32 and dones.dtype == bool
                 for k, rec in enumerate(log[-1]):
                     sent = rec["actions"]
                     for j, (learner, car) in enumerate(zip(learners, vec.cars, strict=True)):
                         slot = 2 * k + j
+                        # Each slot: its agent's observation (the new episode's after an end).
+                        np.testing.assert_array_equal(obs_out[slot], vec._copies[k].obs[learner])
                         np.testing.assert_array_equal(sent[learner], actions[slot])
                         r = expected_reward(rec, car, scale, penalty, sign)
                         assert rewards[slot] == np.float32(r)
@@ -235,7 +238,8 @@ def test_episode_end_infos_for_a_retirement_and_its_cut_short_team_mate() -> Non
             assert info["track"] == "oval"
             assert info["laps_completed"] == env_infos[car]["laps_completed"] == 0
             assert info["episode"]["l"] == len(log)
-            assert 0.0 <= info["episode"]["t"] < 60.0  # wall seconds since the reset
+            t = info["episode"]["t"]
+            assert isinstance(t, float) and 0.0 <= t < 60.0  # wall seconds since the reset
             assert info["episode"]["t"] == round(info["episode"]["t"], 3)
         assert parked["episode"]["r"] < -2.0  # the penalty (3) on the retiring step
         assert moving["episode"]["r"] > 0.5  # the moving car made progress
@@ -725,5 +729,23 @@ def test_generated_envs_take_the_vec_envs_settings() -> None:
         assert env is not None
         assert (env.n_cars, env.laps, env.layout.n_rays) == (2, 2, 16)
         assert vec.get_attr("laps") == [2]
+    finally:
+        vec.close()
+
+
+def test_defaults_and_a_mix_of_listed_and_generated_tracks() -> None:
+    """The documented defaults (4 copies, 2 cars, 1 lap, scale 1, no penalty, no frozen
+    drivers); with ``share=0.5`` episodes alternate between listed and generated tracks
+    without tripping over the closed generated env."""
+    vec = SelfPlayVecEnv(["oval"], seed=0, procedural=Procedural(share=0.5, length=(60, 80)))
+    try:
+        assert (vec.n_copies, vec.n_cars, vec.n_learners, vec.laps) == (4, 2, 1, 1)
+        assert (vec.reward_scale, vec.dnf_penalty, vec.role) == (1.0, 0.0, "racer")
+        assert vec.racer is None and vec.nature is None and vec.render_mode is None
+        seen = set()
+        for _ in range(4):
+            vec.reset()
+            seen |= {c.track.startswith("random:") for c in vec._copies}
+        assert seen == {True, False}
     finally:
         vec.close()
