@@ -355,7 +355,10 @@ class Perturbation:
         for name, value in mapping.items():
             if name not in INDEX:
                 raise UncertaintyError(f"unknown perturbation parameter {name!r}")
-            arr = np.asarray(value, dtype=np.float64)
+            try:  # a reset option from a user: "fast" or {} must not escape as a numpy error
+                arr = np.asarray(value, dtype=np.float64)
+            except (TypeError, ValueError):
+                raise UncertaintyError(f"{name} must be a finite number or one per car") from None
             if arr.ndim == 1 and arr.shape != (n_cars,):
                 raise UncertaintyError(
                     f"{name} needs one value per car ({n_cars}), got {arr.shape}"
@@ -458,8 +461,11 @@ def nature_values(
     target = lo + 0.5 * (x + 1.0) * (hi - lo)
     out = np.array(current, dtype=np.float64, copy=True)
     if rate is not None:
+        # The target clipped into reach (not now + clipped difference): a target within one
+        # step, the box's edges included, is then reached exactly, not to within a rounding.
         step = rate * (hi - lo)
-        target = out[..., free] + np.clip(target - out[..., free], -step, step)
+        now = out[..., free]
+        target = np.clip(target, now - step, now + step)
     out[..., free] = np.clip(target, lo, hi)
     return out
 
