@@ -11,6 +11,7 @@ import gzip
 import json
 import warnings
 from pathlib import Path
+from typing import Any
 
 import pytest
 from sqlalchemy import select
@@ -26,7 +27,14 @@ from leaderboard.models import (
     SubmissionVersion,
     TrackRecord,
 )
-from leaderboard.results import fail_race, store_result
+from leaderboard.results import (
+    MAX_DETAIL,
+    MAX_LOG_TEXT,
+    PRIVATE_CAR_FIELDS,
+    fail_race,
+    split_private,
+    store_result,
+)
 from leaderboard.settings import Settings
 from tests.leaderboard import factories
 
@@ -206,3 +214,124 @@ def test_failing_a_validation_race_with_a_baseline_car_looks_up_no_null_version(
     db.commit()
     assert version.status == "rejected" and version.error is not None
     assert "worker lost" in version.error
+
+
+# ---- owner-only fields (split_private): exact texts at the caps, labelled streams, rows --
+
+CUT = "\n[…]\n"
+
+
+def private_row(fields: dict[str, Any], agent: str = "car_0") -> dict[str, Any] | None:
+    """The private row of ``agent`` when its logs are ``fields`` (None: no row)."""
+    _, private = split_private({"cars": [{"agent": agent}]}, {agent: fields})
+    rows = list(private.values())
+    return rows[0] if rows else None
+
+
+def test_a_text_at_the_cap_is_kept_whole_and_one_more_is_cut_head_and_tail() -> None:
+    at_cap = "a" * (MAX_DETAIL - 1) + "z"
+    row = private_row({"dnf_detail": at_cap})
+    assert row is not None and row["dnf_detail"] == at_cap
+    over = "h" * (MAX_DETAIL // 2) + "m" + "t" * (MAX_DETAIL // 2)  # one character over
+    row = private_row({"dnf_detail": over})
+    assert row is not None
+    assert row["dnf_detail"] == "h" * (MAX_DETAIL // 2) + CUT + "t" * (MAX_DETAIL // 2)
+
+
+def test_output_is_cut_at_its_own_cap_not_the_detail_cap() -> None:
+    text = "o" * MAX_LOG_TEXT
+    row = private_row({"output": text})
+    assert row is not None and row["output"] == text  # 16 KiB kept whole (detail cap: 4 KiB)
+    row = private_row({"output": text + "!"})
+    assert row is not None
+    assert row["output"] == "o" * (MAX_LOG_TEXT // 2) + CUT + "o" * (MAX_LOG_TEXT // 2 - 1) + "!"
+
+
+def test_a_structured_detail_is_stored_as_its_json() -> None:
+    row = private_row({"dnf_detail": {"error": "boom", "step": 3}})
+    assert row is not None and row["dnf_detail"] == '{"error": "boom", "step": 3}'
+
+
+@pytest.mark.parametrize("empty", [None, ""])
+def test_empty_fields_make_no_row(empty: str | None) -> None:
+    fields = {"dnf_detail": empty, "output": empty, "stdout": empty, "stderr": empty}
+    assert private_row(fields) is None
+    assert private_row({**fields, "sandbox_mode": empty}) is None
+
+
+def test_stdout_and_stderr_are_labelled_in_that_order() -> None:
+    row = private_row({"stderr": "warn\n", "stdout": "hello"})
+    assert row is not None
+    assert row["output"] == "--- stdout ---\nhello\n--- stderr ---\nwarn\n"
+    row = private_row({"stderr": "only the errors"})
+    assert row is not None and row["output"] == "--- stderr ---\nonly the errors"
+
+
+def test_an_output_field_wins_over_the_streams() -> None:
+    row = private_row({"output": "combined", "stdout": "ignored", "stderr": "ignored"})
+    assert row is not None and row["output"] == "combined"
+
+
+def test_worker_captures_join_head_and_tail_and_skip_what_is_missing() -> None:
+    """The worker keeps a stream's first and last bytes: ``{"head", "tail", "bytes"}``."""
+    both = {"head": "first lines", "tail": "last lines", "bytes": 123456}
+    row = private_row({"stdout": both, "stderr": {"head": "", "tail": "only a tail", "bytes": 9}})
+    assert row is not None
+    assert row["output"] == (
+        "--- stdout ---\nfirst lines" + CUT + "last lines\n--- stderr ---\nonly a tail"
+    )
+    assert private_row({"stdout": {"head": None, "tail": "", "bytes": 0}}) is None
+
+
+def test_the_combined_streams_are_cut_at_the_log_cap() -> None:
+    row = private_row({"stdout": "s" * MAX_LOG_TEXT})
+    assert row is not None
+    label = "--- stdout ---\n"
+    whole = label + "s" * MAX_LOG_TEXT
+    assert row["output"] == whole[: MAX_LOG_TEXT // 2] + CUT + whole[-(MAX_LOG_TEXT // 2) :]
+
+
+def test_sandbox_mode_is_kept_to_16_characters() -> None:
+    row = private_row({"sandbox_mode": "seccomp-fallback-without-landlock"})
+    assert row == {"dnf_detail": None, "output": None, "sandbox_mode": "seccomp-fallback"}
+
+
+def test_private_fields_leave_the_public_cars_and_logs_outrank_the_result() -> None:
+    result = {
+        "track": "oval",
+        "cars": [
+            {"agent": "car_0", "status": "dnf", "dnf_detail": "from the result", "laps": 1},
+            {"agent": "car_1", "status": "finished", "stdout": "s", "stderr": "e"},
+        ],
+    }
+    logs = {"car_0": {"dnf_detail": "from the logs"}}
+    public, private = split_private(result, logs)
+    assert public == {
+        "track": "oval",
+        "cars": [
+            {"agent": "car_0", "status": "dnf", "laps": 1},
+            {"agent": "car_1", "status": "finished"},
+        ],
+    }
+    assert private[0]["dnf_detail"] == "from the logs"
+    assert private[1]["output"] == "--- stdout ---\ns\n--- stderr ---\ne"
+    assert set(PRIVATE_CAR_FIELDS) & set(public["cars"][1]) == set()
+
+
+def test_only_car_agents_get_rows_indexed_by_their_number() -> None:
+    logs = {
+        "car_12": {"output": "twelve"},
+        "nature_car_0": {"output": "a nature"},
+        "car_x": {"output": "no number"},
+        "xcar_1": {"output": "prefixed"},
+        "car_3_": {"output": "suffixed"},
+    }
+    public, private = split_private({"track": "oval"}, logs)
+    assert public == {"track": "oval"}  # no cars key is added
+    assert private == {12: {"dnf_detail": None, "output": "twelve", "sandbox_mode": None}}
+
+
+def test_a_car_without_an_agent_name_gets_no_row() -> None:
+    public, private = split_private({"cars": [{"dnf_detail": "orphan", "status": "dnf"}]})
+    assert public == {"cars": [{"status": "dnf"}]}
+    assert private == {}
