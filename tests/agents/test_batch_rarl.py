@@ -99,6 +99,12 @@ def test_spaces_reset_observations_and_delegation() -> None:
     assert act.shape == (len(CFG.free),) and act.dtype == np.float32
     assert np.all(act.low == -1.0) and np.all(act.high == 1.0)
 
+    # One track one way round (the usual training set-up): one simulator, the same spaces.
+    single = BatchNatureVecEnv(racers(reverse=False))
+    assert single.num_envs == N_ENVS * N_CARS
+    assert single.observation_space.shape == (size,) and single.action_space.shape == act.shape
+    assert single.reset().shape == (N_ENVS * N_CARS, size)
+
     twin = racers()
     assert natures.seed(11) == twin.seed(11)
     obs = natures.reset()
@@ -123,6 +129,8 @@ def test_spaces_reset_observations_and_delegation() -> None:
     assert natures.get_attr("max_cycles", indices=[SLOTS - 1]) == [70]
     other = env.sims[0].state
     (called,) = natures.env_method("global_state", indices=[SLOTS - 1], st=other)
+    np.testing.assert_array_equal(called, env.sims[1].global_state(st=other))
+    (called,) = natures.env_method("global_state", other, indices=[SLOTS - 1])
     np.testing.assert_array_equal(called, env.sims[1].global_state(st=other))
     assert len(natures.env_method("nature_obs")) == SLOTS
     assert natures.env_is_wrapped(object, indices=[0, 1]) == [False, False]

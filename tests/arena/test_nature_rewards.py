@@ -193,20 +193,24 @@ def test_reward_function_nominal_and_perturbed_with_natures() -> None:
 
 def test_reward_function_params_describe_the_car_of_this_step() -> None:
     """The params a reward function gets are the car's of this step: speed, progress (% of the
-    race), steps, off-track and crash flags match the env's infos; a reversed race builds
-    reversed params (one cached builder per track and direction)."""
+    race), steps, off-track and crash flags (its own wall or car contact, not another car's)
+    match the env's infos; a reversed race builds reversed params (one cached builder per
+    track and direction)."""
     fn = Recorder()
-    env = arena.parallel_env(track=TRACK, n_cars=2, control_hz=10, reward=fn)
+    env = arena.parallel_env(track=TRACK, n_cars=3, control_hz=10, reward=fn)
     drive = pursuit_driver(env)
-    flags = set()
+    flags: set[tuple[bool, bool]] = set()
+    crashes: set[tuple[bool, ...]] = set()
     for direction in ("forward", "reverse"):
         obs, _ = env.reset(seed=0, options={"direction": direction})
         for step in range(1, 26):
             fn.params.clear()
             acts = {a: drive(obs[a]) for a in env.agents}
             acts["car_1"] = np.array([0.0, 1.0])  # straight on: off the road, into the wall
+            acts["car_2"] = np.zeros(2)  # stays on the grid, touching nothing
             obs, rew, _, _, infos = env.step(acts)
-            assert len(fn.params) == 2
+            assert len(fn.params) == 3
+            crashes.add(tuple(p["is_crashed"] for p in fn.params))
             for car, p in zip(env.cars, fn.params, strict=True):
                 info = infos[car]
                 assert rew[car] == info["reward_terms"]["deepracer"]
@@ -223,6 +227,7 @@ def test_reward_function_params_describe_the_car_of_this_step() -> None:
     env.close()
     # On the road, off it, off it against the wall, and back on the road against it.
     assert flags == {(False, False), (True, False), (True, True), (False, True)}
+    assert (True, True, False) in crashes  # reversed: car_0 and car_1 touch, car_2 does not
 
 
 def test_sampled_uncertainty_has_infos_but_no_natures() -> None:
