@@ -78,11 +78,17 @@ space := $(empty) $(empty)
 comma := ,
 SANDBOX_DECISIONS := x_sandbox_mode x_weak_sandbox_allowed x_allow_weak_sandbox x_mode_label \
 	xǁSandboxLimitsǁ__post_init__ x_fallback_identity x__others_can_reach x_fallback_paths
+# The episode core is scoped to its nature/zero-sum path: the natures' observations, rewards
+# and infos, the nominal reward of each mode and the perturbed one (the rest of arena.episode
+# is the race loop, pinned by the env and parity suites).
+EPISODE_NATURE := xǁRaceEpisodeEnvǁ_add_uncertainty xǁRaceEpisodeEnvǁ_rewards \
+	xǁRaceEpisodeEnvǁ_reward_key xǁRaceEpisodeEnvǁ_perturbed
 # One mutmut run per word; a word is a comma-separated list of mutant-name globs.
 MUTATE ?= tracks.laps.* arena.rewards.* leaderboard.ratings.* submissions.protocol.* \
 	leaderboard.queue.* leaderboard.results.* agents.selfplay.* arena.uncertainty.* \
-	submissions.bundle.* agents.checkpoint.* \
-	$(subst $(space),$(comma),$(strip $(foreach f,$(SANDBOX_DECISIONS),submissions.sandbox.$(f)*)))
+	submissions.bundle.* agents.checkpoint.* agents.batch_rarl.* \
+	$(subst $(space),$(comma),$(strip $(foreach f,$(SANDBOX_DECISIONS),submissions.sandbox.$(f)*))) \
+	$(subst $(space),$(comma),$(strip $(foreach f,$(EPISODE_NATURE),arena.episode.$(f)*)))
 
 mutate: install
 	mkdir -p $(ARTIFACTS)

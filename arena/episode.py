@@ -475,14 +475,7 @@ class RaceEpisodeEnv(ParallelEnv):
                 self.dnf_reason[i] = DNF_REASONS[int(dnf[i])]
         terms = {k: v[0] for k, v in out.terms.items()}
         nominal = self._rewards(frame, terms, out)
-        rewards = nominal
-        if self._unc is not None:
-            active_before = out.terminated[0] | out.truncated[0] | frame.episode.active[0]
-            rewards = np.where(
-                active_before,
-                perturbed_reward(self._pert.values[0], terms, self._reward_key(), nominal),
-                0.0,
-            )
+        rewards = nominal if self._unc is None else self._perturbed(frame, terms, out, nominal)
         result_obs: dict[str, Obs] = {}
         result_rew: dict[str, float] = {}
         result_term: dict[str, bool] = {}
@@ -646,6 +639,22 @@ class RaceEpisodeEnv(ParallelEnv):
         return result
 
     # ---- model uncertainty ---------------------------------------------------------------------
+
+    def _perturbed(
+        self,
+        frame: Frame,
+        terms: dict[str, NDArray[np.float64]],
+        out: Outcome,
+        nominal: NDArray[np.float64],
+    ) -> NDArray[np.float64]:
+        """(N,) this step's rewards under the perturbation (the cars' and, negated, their
+        natures'); 0.0 for a car that was out of the race before the step."""
+        active_before = out.terminated[0] | out.truncated[0] | frame.episode.active[0]
+        return np.where(
+            active_before,
+            perturbed_reward(self._pert.values[0], terms, self._reward_key(), nominal),
+            0.0,
+        )
 
     def _set_perturbation(self) -> None:
         self.perturbation = Perturbation(self._pert.values[0].copy())
