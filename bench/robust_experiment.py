@@ -13,9 +13,10 @@ paired t-test against ``nominal`` (seeds paired by index). The goal of the issue
 beside: worst-10 % mean ≥ 1.25 × nominal arm's with non-overlapping intervals, at ≤ 5 %
 loss of nominal score.
 
-Runs already trained (``<out>/<arm>_s<seed>/policy.zip``) are reused, so the command can be
-stopped and started again. Usage (the issue's budget; hours on 2 CPU cores, minutes on a
-GPU with ``--device cuda``)::
+Runs already trained (``<out>/<arm>_s<seed>/policy.zip``) and scored (``scores.json`` beside
+it, for the same evaluation settings) are reused, so the command can be stopped and started
+again, and an arm added to a finished experiment costs only its own runs. Usage (the issue's
+budget; hours on 2 CPU cores, minutes on a GPU with ``--device cuda``)::
 
     python bench/robust_experiment.py --steps 20000000 --seeds 5 --out runs/robust_experiment \\
         --json bench/results/robust_experiment.json
@@ -116,8 +117,36 @@ def train_run(args: argparse.Namespace, arm: str, seed: int) -> Path:
     return policy
 
 
+def score_key(args: argparse.Namespace) -> dict[str, Any]:
+    """What a run's scores depend on besides its policy (a cached score must match it)."""
+    return {
+        "eval_tracks": list(args.eval_tracks),
+        "starts": [float(s) for s in args.starts],
+        "grid_small": bool(args.grid_small),
+    }
+
+
 def score_run(args: argparse.Namespace, policy_path: Path) -> dict[str, dict[str, float]]:
-    """Per evaluation track: nominal score, worst-10 % mean and DNF share over the grid."""
+    """Per evaluation track: nominal score, worst-10 % mean and DNF share over the grid.
+
+    The scores are kept beside the policy (``scores.json``, with :func:`score_key`) and
+    reused while the policy file is older than them and the key matches: scoring 20 runs
+    over the full grid takes about as long as training them.
+    """
+    cache = policy_path.parent / "scores.json"
+    if cache.is_file() and cache.stat().st_mtime >= policy_path.stat().st_mtime:
+        kept = json.loads(cache.read_text(encoding="utf-8"))
+        if kept.get("key") == score_key(args):
+            return dict(kept["scores"])
+    scores = _score(args, policy_path)
+    cache.write_text(
+        json.dumps({"key": score_key(args), "scores": scores}, indent=2) + "\n", encoding="utf-8"
+    )
+    return scores
+
+
+def _score(args: argparse.Namespace, policy_path: Path) -> dict[str, dict[str, float]]:
+    """:func:`score_run` without its cache."""
     from agents.loading import load_policy
     from agents.robustness import evaluate_robustness
 
