@@ -215,3 +215,93 @@ def test_a_validation_race_judges_every_pending_version_behind_a_baseline(
     assert db.get(SubmissionVersion, bad.id).status == "rejected"  # type: ignore[union-attr]
     assert db.get(Submission, good.submission_id).status == "active"  # type: ignore[union-attr]
     assert db.get(Submission, bad.submission_id).status == "rejected"  # type: ignore[union-attr]
+
+
+def _pending_version(
+    db: Session, sub: Submission, *, error: str | None = None
+) -> SubmissionVersion:
+    """A new pending version of ``sub`` (a copy of its newest), flushed."""
+    newest = max(sub.versions, key=lambda v: v.version)
+    version = SubmissionVersion(
+        submission_id=sub.id, version=newest.version + 1, status="pending", error=error,
+        source=newest.source, format=newest.format, manifest=newest.manifest,
+    )  # fmt: skip
+    db.add(version)
+    db.flush()
+    return version
+
+
+def _validate(db: Session, entries: list[tuple[Submission, SubmissionVersion]]) -> None:
+    """Run one validation race of ``entries`` (car i = entries[i]) to a clean finish."""
+    for job in db.scalars(select(Job)):
+        job.status = "done"
+    race = Race(
+        kind="validation",
+        track="oval",
+        laps=1,
+        entries=[
+            RaceEntry(car=i, submission_id=s.id, version_id=v.id, name=s.name, source="x")
+            for i, (s, v) in enumerate(entries)
+        ],
+    )
+    db.add(race)
+    queue.enqueue(db, race)
+    db.commit()
+    lease = queue.claim(db, owner="w", lease_s=30)
+    assert lease is not None and lease.race_id == race.id
+    assert queue.complete(db, lease, factories.fake_result(race))
+    db.expire_all()
+
+
+def test_a_validation_race_judges_only_pending_versions_and_all_of_them(
+    db: Session, settings: Settings
+) -> None:
+    """Every car finishes cleanly. A version rejected meanwhile (say by an operator) stays
+    rejected; a version judged earlier does not stop the cars after it from being judged;
+    an accepted version's old error is cleared (None, not an empty string)."""
+    a, b, c = factories.submissions(db, settings, 3)
+    active_a = db.get(SubmissionVersion, a.active_version_id)
+    assert active_a is not None
+    withdrawn = _pending_version(db, b)
+    withdrawn.status, withdrawn.error = "rejected", "withdrawn by an operator"
+    fresh = _pending_version(db, c, error="a note from an earlier attempt")
+    db.commit()
+    _validate(db, [(a, active_a), (b, withdrawn), (c, fresh)])
+    still = db.get(SubmissionVersion, withdrawn.id)
+    assert still is not None and still.status == "rejected"
+    assert still.error == "withdrawn by an operator"
+    judged = db.get(SubmissionVersion, fresh.id)
+    assert judged is not None and (judged.status, judged.error) == ("validated", None)
+    newer = db.get(Submission, c.id)
+    assert newer is not None and newer.active_version_id == fresh.id
+
+
+def test_a_rejected_submission_whose_new_version_passes_races_again(
+    db: Session, settings: Settings
+) -> None:
+    """A submission rejected for its first version becomes active once a new one validates."""
+    (sub,) = factories.submissions(db, settings, 1)
+    first = db.get(SubmissionVersion, sub.active_version_id)
+    assert first is not None
+    first.status, sub.status, sub.active_version_id = "rejected", "rejected", None
+    second = _pending_version(db, sub)
+    db.commit()
+    _validate(db, [(sub, second)])
+    again = db.get(Submission, sub.id)
+    assert again is not None
+    assert (again.status, again.active_version_id) == ("active", second.id)
+
+
+def test_complete_stores_the_owner_logs_it_is_given(db: Session, settings: Settings) -> None:
+    """``complete(logs=...)`` (a worker's ``JobResult.logs``) reaches ``race_logs``."""
+    from leaderboard.models import RaceLog
+
+    subs = factories.submissions(db, settings, 2)
+    race = _race(db, subs)
+    lease = queue.claim(db, owner="w", lease_s=30)
+    assert lease is not None
+    logs = {"car_1": {"output": "policy says hi", "sandbox_mode": "bwrap"}}
+    assert queue.complete(db, lease, factories.fake_result(race), logs=logs)
+    db.expire_all()
+    rows = list(db.scalars(select(RaceLog).where(RaceLog.race_id == race.id)))
+    assert [(r.car, r.output, r.sandbox_mode) for r in rows] == [(1, "policy says hi", "bwrap")]

@@ -319,12 +319,12 @@ def test_private_fields_leave_the_public_cars_and_logs_outrank_the_result() -> N
 
 
 def test_only_car_agents_get_rows_indexed_by_their_number() -> None:
-    logs = {
-        "car_12": {"output": "twelve"},
+    logs = {  # the others come first: each is skipped, none ends the loop
         "nature_car_0": {"output": "a nature"},
         "car_x": {"output": "no number"},
         "xcar_1": {"output": "prefixed"},
         "car_3_": {"output": "suffixed"},
+        "car_12": {"output": "twelve"},
     }
     public, private = split_private({"track": "oval"}, logs)
     assert public == {"track": "oval"}  # no cars key is added
@@ -335,3 +335,18 @@ def test_a_car_without_an_agent_name_gets_no_row() -> None:
     public, private = split_private({"cars": [{"dnf_detail": "orphan", "status": "dnf"}]})
     assert public == {"cars": [{"status": "dnf"}]}
     assert private == {}
+
+
+def test_a_replay_log_without_events_gives_an_empty_timeline(
+    db: Session, settings: Settings, tmp_path: Path
+) -> None:
+    """A readable replay log with no ``events`` key (an older writer): no events, which is
+    not the same as no replay (None)."""
+    subs = factories.submissions(db, settings, 2)
+    race = _race(db, subs)
+    replay = tmp_path / "race.replay.json.gz"
+    replay.write_bytes(gzip.compress(json.dumps({"frames": []}).encode()))
+    stored = _store(db, race, factories.fake_result(race), replay_path=str(replay))
+    assert stored.events == []
+    other = _race(db, subs)
+    assert _store(db, other, factories.fake_result(other), replay_path=None).events is None
