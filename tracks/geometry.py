@@ -369,10 +369,12 @@ class Track:
         With ``own_s`` (M,) m, cross-sections within ``near`` m of it along the lap count
         without the margin (a point just outside its own edge is not "near the road").
         """
+        from scipy.spatial import cKDTree  # noqa: PLC0415 - scipy loads on first use
+
         p = _as_points(points)
         half = 0.5 * float(self.segment_lengths.max()) + margin
         reach = float(max(self.width_left.max(), self.width_right.max())) + half + margin
-        pairs = type(self._tree)(p).sparse_distance_matrix(self._tree, reach, output_type="ndarray")
+        pairs = cKDTree(p).sparse_distance_matrix(self._tree, reach, output_type="ndarray")
         hit = np.zeros(len(p), dtype=bool)
         if len(pairs) == 0:
             return hit

@@ -126,6 +126,20 @@ def test_fail_requeues_until_the_third_attempt_then_fails_the_race(
     assert queue.stats(db)["failed"] == 1 and queue.pending(db) == 0
 
 
+def _pending_version(
+    db: Session, sub: Submission, *, error: str | None = None
+) -> SubmissionVersion:
+    """A new pending version of ``sub`` (a copy of its newest), flushed."""
+    newest = max(sub.versions, key=lambda v: v.version)
+    version = SubmissionVersion(
+        submission_id=sub.id, version=newest.version + 1, status="pending", error=error,
+        source=newest.source, format=newest.format, manifest=newest.manifest,
+    )  # fmt: skip
+    db.add(version)
+    db.flush()
+    return version
+
+
 def test_a_failed_validation_race_rejects_its_pending_versions_only(
     db: Session, settings: Settings
 ) -> None:
@@ -133,12 +147,7 @@ def test_a_failed_validation_race_rejects_its_pending_versions_only(
     sub = subs[0]
     current = db.get(SubmissionVersion, sub.active_version_id)
     assert current is not None
-    pending = SubmissionVersion(
-        submission_id=sub.id, version=current.version + 1, status="pending",
-        source=current.source, format=current.format, manifest=current.manifest,
-    )  # fmt: skip
-    db.add(pending)
-    db.flush()
+    pending = _pending_version(db, sub)
     race = Race(
         kind="validation",
         track="oval",
@@ -215,20 +224,6 @@ def test_a_validation_race_judges_every_pending_version_behind_a_baseline(
     assert db.get(SubmissionVersion, bad.id).status == "rejected"  # type: ignore[union-attr]
     assert db.get(Submission, good.submission_id).status == "active"  # type: ignore[union-attr]
     assert db.get(Submission, bad.submission_id).status == "rejected"  # type: ignore[union-attr]
-
-
-def _pending_version(
-    db: Session, sub: Submission, *, error: str | None = None
-) -> SubmissionVersion:
-    """A new pending version of ``sub`` (a copy of its newest), flushed."""
-    newest = max(sub.versions, key=lambda v: v.version)
-    version = SubmissionVersion(
-        submission_id=sub.id, version=newest.version + 1, status="pending", error=error,
-        source=newest.source, format=newest.format, manifest=newest.manifest,
-    )  # fmt: skip
-    db.add(version)
-    db.flush()
-    return version
 
 
 def _validate(db: Session, entries: list[tuple[Submission, SubmissionVersion]]) -> None:
