@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import NDArray
-from PIL import Image, ImageDraw
 
 from arena.colours import car_colour
 from arena.walls import Walls
@@ -27,6 +26,8 @@ class TopDownRenderer:
     """
 
     def __init__(self, track: Track, walls: Walls, size: int = 480) -> None:
+        from PIL import Image, ImageDraw  # noqa: PLC0415 - only an env that renders needs PIL
+
         self.size = size
         pts = np.vstack([walls.left, walls.right])
         lo, hi = pts.min(axis=0) - 1.0, pts.max(axis=0) + 1.0
@@ -50,6 +51,8 @@ class TopDownRenderer:
 
     def render(self, corners: NDArray[np.float64], active: NDArray[np.bool_]) -> NDArray[np.uint8]:
         """(size, size, 3) uint8 image with every active car's rectangle (n, 4, 2) m."""
+        from PIL import ImageDraw  # noqa: PLC0415 - loaded by __init__ already
+
         img = self.background.copy()
         draw = ImageDraw.Draw(img)
         for i, (box, on) in enumerate(zip(corners, active, strict=True)):

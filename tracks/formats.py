@@ -39,7 +39,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
-import jsonschema
 import numpy as np
 from numpy.typing import NDArray
 
@@ -103,6 +102,8 @@ def _read_bytes(path: Path) -> bytes:
 
 def track_from_dict(data: Any, *, source: str = "track") -> Track:
     """Build a :class:`Track` from our JSON structure, validating it against the schema."""
+    import jsonschema  # noqa: PLC0415 - ~0.1 s: loaded by the first track, not every import
+
     try:
         jsonschema.validate(data, TRACK_SCHEMA)
     except jsonschema.ValidationError as err:

@@ -482,6 +482,24 @@ def test_the_sandboxed_worker_starts_without_scipy_or_the_simulator() -> None:
     assert run.stdout.splitlines() == ["[]", "True"]
 
 
+def test_a_bundle_built_on_the_baselines_starts_without_jsonschema_or_pil() -> None:
+    # Bundles written from the Compete page wrap agents.baselines (so does the bench's
+    # pursuit bundle); each of their sandboxes imported jsonschema (track files) and PIL
+    # (rendering), about 0.15 s of CPU per start, for nothing a policy does. Both still load
+    # where used: a track read from JSON is still checked against the schema.
+    code = (
+        "import sys, agents.baselines\n"
+        "print(sorted(m for m in ('jsonschema', 'PIL') if m in sys.modules))\n"
+        "from tracks.formats import track_from_dict\n"
+        "try:\n"
+        "    track_from_dict({'centre_line': 'no'})\n"
+        "except Exception as err:\n"
+        "    print(type(err).__name__, 'invalid track JSON' in str(err))\n"
+    )
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert run.stdout.splitlines() == ["[]", "TrackError True"]
+
+
 def test_bundle_root_is_read_only_inside(make_python_bundle: MakeBundle) -> None:
     body = """
     class Policy(Driver):
