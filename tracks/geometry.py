@@ -37,6 +37,10 @@ DEFAULT_CHECKPOINTS = 10  # ordered gates per lap; gate 0 is the start/finish li
 CORNER_CURVATURE = 1.0 / 12.0  # 1/m: bends tighter than a 12 m radius (1/10 scale) are corners
 CORNER_MIN_TURN = np.deg2rad(30.0)  # rad of heading change for a bend to count as a corner
 _PROJECT_BLOCK = 16384  # points per projection block: keeps the (M, 4) temporaries in cache
+# At most this many points are projected in scalar arithmetic (:meth:`Track._project_few`):
+# the env's cars, every step. Each numpy call costs about a microsecond whatever its size,
+# so on a few points the scalar loop is cheaper than the ~40 calls of a block.
+_PROJECT_FEW = 16
 
 
 @dataclass(frozen=True)
@@ -518,6 +522,11 @@ class Track:
         cols = (c[:, 0], c[:, 1], nrm[:, 0], nrm[:, 1], e[:, 0], e[:, 1], dn[:, 0], dn[:, 1])
         return np.stack([*cols, -_cross(e, dn), _cross(e, nrm)])
 
+    @cached_property
+    def _frame_rows(self) -> list[tuple[float, ...]]:
+        """:attr:`_frame_table` as one tuple of 10 Python floats per segment (N,)."""
+        return [tuple(row) for row in self._frame_table.T.tolist()]
+
     def project(self, points: ArrayLike) -> Projection:
         """Project (M, 2) points [x m, y m] onto the centre line.
 
@@ -528,7 +537,9 @@ class Track:
         """
         p = _as_points(points)
         m, n = len(p), self.n_points
-        if m <= _PROJECT_BLOCK:  # one block (the env's few cars every step): no copies
+        if m <= _PROJECT_FEW:  # the env's cars every step
+            seg, tb, db = self._project_few(p)
+        elif m <= _PROJECT_BLOCK:  # one block: no copies
             seg, tb, db = self._project_block(p)
         else:
             seg = np.empty(m, dtype=np.int64)
@@ -598,6 +609,56 @@ class Track:
             tb[none] = 0.0
             db[none] = np.einsum("mk,mk->m", p[none] - self.centre[v], self.normals[v])
         return seg, tb, db
+
+    def _project_few(self, p: FloatArray) -> tuple[IntArray, FloatArray, FloatArray]:
+        """:meth:`_project_block` for a few points, in Python floats.
+
+        The same candidates, the same operations in the same order (IEEE ``+ - * / sqrt``
+        round alike in numpy and Python) and the same first-minimum choice give the very
+        same bits (a test holds them equal). What the block handles by its special rules —
+        a point with no frame solution, a degenerate frame, a NaN — sends the whole call to
+        the block.
+        """
+        n = self.n_points
+        k = min(2, n)
+        _, nearest = self._tree.query(p, k=k)
+        rows, sqrt, inf = self._frame_rows, math.sqrt, math.inf
+        seg: list[int] = []
+        tb: list[float] = []
+        db: list[float] = []
+        points = zip(p.tolist(), np.reshape(nearest, (len(p), k)).tolist(), strict=True)
+        for (px, py), near in points:
+            best, best_cost, best_t, best_d = -1, inf, 0.0, 0.0
+            for j in [v % n for v in near] + [(v - 1) % n for v in near]:
+                cx, cy, nx, ny, ex, ey, dnx, dny, qa, en = rows[j]
+                qx = px - cx
+                qy = py - cy
+                c = qx * ny - qy * nx
+                b = qx * dny - qy * dnx - en
+                disc = b * b - 4.0 * qa * c
+                # A NaN disc makes the candidate invalid below, whatever its root.
+                root = sqrt(disc if disc >= 0.0 else 0.0)
+                if b < 0:
+                    root = -root
+                denom = -b - root
+                t = 2.0 * c / denom if abs(denom) > 1e-300 else 0.0
+                ntx = t * dnx + nx
+                nty = t * dny + ny
+                norm2 = ntx * ntx + nty * nty
+                if norm2 == 0.0:  # a degenerate frame (x / 0)
+                    return self._project_block(p)
+                d = ((qx - t * ex) * ntx + (qy - t * ey) * nty) / norm2
+                cost = abs(d) if disc >= 0 and -1e-9 <= t <= 1 + 1e-9 else inf
+                if not cost <= inf:  # NaN, which the block's argmin would pick
+                    return self._project_block(p)
+                if cost < best_cost:  # strictly: the first minimum, as argmin
+                    best, best_cost, best_t, best_d = j, cost, t, d
+            if best < 0:  # no frame solution: the block's nearest-vertex rule
+                return self._project_block(p)
+            seg.append(best)
+            tb.append(min(max(best_t, 0.0), 1.0))
+            db.append(best_d)
+        return np.array(seg, dtype=np.int64), np.array(tb), np.array(db)
 
     def to_frenet(self, points: ArrayLike) -> FloatArray:
         """Cartesian (M, 2) [x m, y m] → Frenet (M, 2) [s m, d m]."""

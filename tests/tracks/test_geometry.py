@@ -130,6 +130,48 @@ def test_projection_is_finite_everywhere_and_blockwise_consistent() -> None:
     np.testing.assert_array_equal(part.segment, whole.segment[idx])
 
 
+def assert_same_bits(a: tuple[FloatArray, ...], b: tuple[FloatArray, ...]) -> None:
+    for x, y in zip(a, b, strict=True):
+        assert x.dtype == y.dtype and x.shape == y.shape
+        assert x.tobytes() == y.tobytes()
+
+
+@pytest.mark.parametrize("name", ["oval", "monza", "hairpins", "chicanes"])
+def test_projection_of_a_few_points_is_the_block_projection_bit_for_bit(name: str) -> None:
+    # The env projects its cars (<= 16) in Python floats; a race must not depend on which
+    # path ran: cars on the road, off it, and far beyond the walls.
+    track = load_track(name)
+    rng = np.random.default_rng(5)
+    xmin, ymin, xmax, ymax = track.bounds
+    for trial in range(150):
+        m = int(rng.integers(1, 17))
+        if trial % 2:
+            pts = rng.uniform([xmin - 10, ymin - 10], [xmax + 10, ymax + 10], (m, 2))
+        else:
+            pts = track.centre[rng.integers(0, track.n_points, m)] + rng.normal(0, 0.7, (m, 2))
+        assert_same_bits(track._project_few(pts), track._project_block(pts))
+        proj = track.project(pts)
+        assert proj.s.shape == proj.d.shape == proj.heading.shape == proj.segment.shape == (m,)
+
+
+def test_projection_of_a_few_points_without_a_frame_solution_uses_the_vertex() -> None:
+    # A concave notch (5 corners, no smoothing): inside it some points have no solution on
+    # the candidate segments' frames, and the nearest vertex is used, as for many points.
+    notch = Track(
+        np.array([[0.0, 0.0], [6.0, 0.0], [6.0, 6.0], [3.0, 1.0], [0.0, 6.0]]),
+        0.5,
+        0.5,
+        smooth=False,
+        name="notch",
+    )
+    pts = np.array([[0.20328112, 2.58220763], [0.28163639, 0.33265804], [3.0, 3.0]])
+    seg, t, d = notch._project_block(pts[:1])
+    assert t[0] == 0.0  # the vertex rule ran
+    np.testing.assert_allclose(d, (pts[0] - notch.centre[seg[0]]) @ notch.normals[seg[0]])
+    for k in range(1, 4):
+        assert_same_bits(notch._project_few(pts[:k]), notch._project_block(pts[:k]))
+
+
 def test_signed_distance_and_is_inside(polyline: Track) -> None:
     x = np.linspace(-10.0, 10.0, 9)  # along the bottom straight, y = -RADIUS
     on_centre = np.column_stack([x, np.full_like(x, -RADIUS)])
