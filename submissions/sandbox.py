@@ -38,7 +38,8 @@ host metadata      nothing of the host is bound writable       ``chmod``/``chown
                                                                ``*xattr``/``mknod`` refused;
                                                                ``setpriority``/``sched_set*`` on
                                                                anything but itself refused
-memory, CPU, …     ``RLIMIT_AS``/cgroup memory, CPU seconds, open files, file size, no core dumps
+memory, CPU, …     ``RLIMIT_AS``/cgroup memory, CPU seconds, a cgroup CPU quota (``cpus``
+                   cores for the whole sandbox), open files, file size, no core dumps
 lifetime           parent-death signal on the outermost process; its own folder, cgroups,
                    process group and mount are removed by :meth:`SandboxProcess.kill`, or by
                    :func:`reap` / :func:`reap_stale` when the host process itself died
@@ -53,9 +54,10 @@ to job processes in ``SLIPSTREAM_ALLOW_WEAK_SANDBOX=1``); ``SANDBOX=seccomp`` fo
 fallback and still needs that permission; ``SANDBOX=bwrap`` insists on bubblewrap. A result
 raced in the fallback says so: :func:`mode_label` gives ``"seccomp-weak"``.
 
-The cgroup caps (v1 ``pids`` and ``memory`` hierarchies under ``/sys/fs/cgroup``) are used
-where the folder is writable (root here); ``RLIMIT_NPROC`` is not enforced for root, so
-without them the process cap rests on the pid namespace (bwrap) or the fork ban (fallback).
+The cgroup caps (v1 ``pids``, ``memory`` and ``cpu`` hierarchies under ``/sys/fs/cgroup``) are
+used where the folder is writable (root here); ``RLIMIT_NPROC`` is not enforced for root, so
+without them the process cap rests on the pid namespace (bwrap) or the fork ban (fallback),
+and nothing caps the cores a sandbox's threads use.
 Run by a non-root user, the fallback keeps that user's uid (it cannot change it; the user has
 no capabilities to drop) and its writable folder is capped by ``RLIMIT_FSIZE`` only.
 """
@@ -92,9 +94,12 @@ WEAK_LABEL = "seccomp-weak"  # what a result raced in the fallback records (fits
 SANDBOX_PREFIX = "slipstream-sbx-"  # <tmp>/slipstream-sbx-<host pid>-<id>: one per sandbox
 JOB_PREFIX = "slipstream-job-"  # <tmp>/slipstream-job-<executor pid>-<id>: a job's scratch
 CGROUP_ROOT = Path("/sys/fs/cgroup")
+CGROUP_HIERARCHIES = ("pids", "memory", "cpu")  # the v1 hierarchies a sandbox gets a cgroup in
 PACKAGES = ("tracks", "arena", "agents", "submissions")  # what a worker may import of ours
 APP = "/app"  # where the packages appear inside bwrap
 MODES = ("bwrap", "seccomp")
+CPU_PERIOD_US = 100_000  # the cgroup CPU quota's period, µs (the kernel's default)
+MIN_CPUS, MAX_CPUS = 0.01, 1024.0  # cores a sandbox may be given (the quota's bounds)
 THREAD_ENV = {  # one thread per math library: 2 cores are shared by every car
     "OMP_NUM_THREADS": "1",
     "OPENBLAS_NUM_THREADS": "1",
@@ -114,6 +119,9 @@ class SandboxLimits:
         open_files: open file descriptors per process (``RLIMIT_NOFILE``).
         file_size_mb: largest file it may write, MiB (``RLIMIT_FSIZE``).
         max_processes: tasks (processes and threads) in its tree (cgroup ``pids.max``).
+        cpus: CPU cores its processes may use together, at most (cgroup CPU quota; a
+            sandbox of many busy processes or threads counts as ``cpus`` cores, not as
+            many: it cannot starve the race, the other cars or other jobs).
         tmpfs_mb: size of its private ``/tmp``, MiB (bwrap mode).
         step_deadline_s: wall time for one action, s, from sending the observation.
         startup_s: wall time to load the policy and answer the first reset, s.
@@ -126,6 +134,7 @@ class SandboxLimits:
     open_files: int = 256
     file_size_mb: int = 64
     max_processes: int = 64
+    cpus: float = 1.0
     tmpfs_mb: int = 256
     step_deadline_s: float = 0.25
     startup_s: float = 60.0
@@ -143,6 +152,8 @@ class SandboxLimits:
             raise SandboxError(
                 f"open_files must be at least 16 (Python needs them), got {self.open_files}"
             )
+        if not MIN_CPUS <= self.cpus <= MAX_CPUS:
+            raise SandboxError(f"cpus must be within {MIN_CPUS}..{MAX_CPUS}, got {self.cpus}")
         for name in ("step_deadline_s", "startup_s"):
             if not getattr(self, name) > 0:
                 raise SandboxError(f"{name} must be positive, got {getattr(self, name)}")
@@ -485,7 +496,7 @@ def _landlock_allow(libc: ctypes.CDLL, ruleset: int, path: str, access: int) -> 
 
 @dataclass
 class CgroupCaps:
-    """Per-sandbox cgroup v1 folders (``pids``, ``memory``) where they can be made.
+    """Per-sandbox cgroup v1 folders (``pids``, ``memory``, ``cpu``) where they can be made.
 
     Attributes:
         dirs: the folders made (empty when cgroups are not writable here).
@@ -499,6 +510,10 @@ class CgroupCaps:
         settings = {
             "pids": {"pids.max": limits.max_processes + 4},  # + bwrap's own processes
             "memory": {"memory.limit_in_bytes": limits.memory_mb * _MIB},
+            "cpu": {  # the whole tree gets `cpus` cores per period, however many tasks it has
+                "cpu.cfs_period_us": CPU_PERIOD_US,
+                "cpu.cfs_quota_us": max(1000, round(limits.cpus * CPU_PERIOD_US)),
+            },
         }
         caps = cls()
         for hierarchy, values in settings.items():
@@ -517,7 +532,7 @@ class CgroupCaps:
     @classmethod
     def existing(cls, name: str) -> CgroupCaps:
         """The folders ``slipstream/<name>`` that exist (to reap a sandbox whose host died)."""
-        found = (CGROUP_ROOT / h / "slipstream" / name for h in ("pids", "memory"))
+        found = (CGROUP_ROOT / h / "slipstream" / name for h in CGROUP_HIERARCHIES)
         return cls([d for d in found if d.is_dir()])
 
     @property

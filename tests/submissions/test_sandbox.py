@@ -566,6 +566,9 @@ def sandbox_refusal(fn: Any, *args: Any, **kwargs: Any) -> str:
         ("startup_s", 0, "startup_s must be positive, got 0"),
         ("startup_s", -1.0, "startup_s must be positive, got -1.0"),
         ("overage_s", -0.001, "overage_s must not be negative, got -0.001"),
+        ("cpus", 0.0099, "cpus must be within 0.01..1024.0, got 0.0099"),
+        ("cpus", 1024.5, "cpus must be within 0.01..1024.0, got 1024.5"),
+        ("cpus", float("nan"), "cpus must be within 0.01..1024.0, got nan"),
     ],
 )
 def test_each_limit_is_refused_one_past_its_bound(field: str, bad: float, message: str) -> None:
@@ -577,9 +580,10 @@ def test_limits_exactly_at_their_bounds_are_accepted() -> None:
     """The bounds are inclusive (a zero overage bank means: no slack at all)."""
     low = SandboxLimits(
         memory_mb=1024, cpu_seconds=1, open_files=16, file_size_mb=1, max_processes=1,
-        tmpfs_mb=1, step_deadline_s=1e-6, startup_s=1e-6, overage_s=0.0,
+        tmpfs_mb=1, step_deadline_s=1e-6, startup_s=1e-6, overage_s=0.0, cpus=0.01,
     )  # fmt: skip
-    assert (low.memory_mb, low.open_files, low.overage_s) == (1024, 16, 0.0)
+    assert (low.memory_mb, low.open_files, low.overage_s, low.cpus) == (1024, 16, 0.0, 0.01)
+    assert SandboxLimits(cpus=1024.0).cpus == 1024.0
     SandboxLimits()  # the defaults pass
 
 
