@@ -583,14 +583,20 @@ def _ProgressCallback(progress: ProgressFn, total: int) -> Any:
 
 # ---- training side --------------------------------------------------------------------------
 
-TRAINING_UNCERTAINTY = ("nominal", "sample", "adversarial", "robust_mg")
+TRAINING_UNCERTAINTY = ("nominal", "sample", "wide", "adversarial", "robust_mg")
 """What ``slipstream train --uncertainty`` takes (see :func:`training_uncertainty`)."""
+
+
+WIDE_FACTOR = 1.5  # how much wider than the scored set the ``wide`` arm's intervals are
 
 
 def training_uncertainty(name: str) -> Any:
     """The :class:`arena.uncertainty.UncertaintyConfig` of a training arm (None: nominal).
 
     * ``sample``: domain randomisation over :data:`arena.uncertainty.DEFAULT_DYNAMICS`;
+    * ``wide``: domain randomisation over :func:`wide_dynamics`, wider than the set a policy is
+      scored on (over-randomisation: the evaluation grid's edges, where policies fail, are
+      then inside the training range rather than at its rim);
     * ``adversarial``: RARL, a nature per car choosing the dynamics inside that set every
       step (rate-limited);
     * ``robust_mg``: Zhang et al.'s robust Markov game: the same nature also chooses the
@@ -609,7 +615,37 @@ def training_uncertainty(name: str) -> Any:
         return None
     if name == "robust_mg":
         return default_config("adversarial", reward=zhang_reward())
+    if name == "wide":
+        from arena.uncertainty import UncertaintyConfig  # noqa: PLC0415 - heavy, imported on use
+
+        return UncertaintyConfig(mode="sample", dynamics=wide_dynamics())
     return default_config(name)
+
+
+def wide_dynamics(factor: float = WIDE_FACTOR) -> Any:
+    """:data:`arena.uncertainty.DEFAULT_DYNAMICS` with every interval ``factor`` times as wide
+    about its nominal value (friction 0.6–1.2 → 0.4–1.3 at 1.5; latency stays whole
+    steps, rounded up; the lower multipliers stay above 0.3, noise above 0), an
+    :class:`arena.uncertainty.DynamicsBounds`."""
+    import dataclasses  # noqa: PLC0415 - only here
+
+    from arena.uncertainty import DEFAULT_DYNAMICS  # noqa: PLC0415 - heavy, imported on use
+
+    def widen(name: str, interval: tuple[float, float]) -> tuple[float, float]:
+        centre = {"steer_offset": 0.0, "latency": 0.0, "action_noise": 0.0}.get(name, 1.0)
+        lo, hi = (centre + factor * (v - centre) for v in interval)
+        if name == "latency":
+            return (0, math.ceil(hi))
+        floor = 0.0 if name in ("steer_offset", "action_noise") else 0.3
+        return (round(max(lo, floor) if name != "steer_offset" else lo, 6), round(hi, 6))
+
+    return dataclasses.replace(
+        DEFAULT_DYNAMICS,
+        **{
+            f.name: widen(f.name, getattr(DEFAULT_DYNAMICS, f.name))
+            for f in dataclasses.fields(DEFAULT_DYNAMICS)
+        },
+    )
 
 
 def zhang_reward() -> Any:

@@ -183,7 +183,8 @@ class TrainArgs:
     """SB3 verbosity (0: quiet, 1: print the training table)"""
     uncertainty: str = "nominal"
     """model uncertainty in training: nominal, sample (domain randomisation over the default
-    robust set of arena.uncertainty), adversarial (RARL: nature agents pick each car's
+    robust set of arena.uncertainty), wide (the same over intervals 1.5 times as wide),
+    adversarial (RARL: nature agents pick each car's
     perturbation, every step within a rate limit; racer and nature trained in alternation;
     with --backend batch the natures of every car of every race act as one batch) or
     robust_mg (adversarial, and the nature also picks the car's reward inside a bounded set:

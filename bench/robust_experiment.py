@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-ARMS = ("nominal", "sample", "adversarial", "robust_mg")
+ARMS = ("nominal", "sample", "wide", "adversarial", "robust_mg")
 TRAIN_TRACKS = ("oval", "hairpins", "chicanes", "bean", "technical", "speedway")
 EVAL_TRACKS = (
     "monza",

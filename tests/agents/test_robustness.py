@@ -18,6 +18,7 @@ from agents.robustness import (
     save_plot,
     summarise,
     tail_mean,
+    training_uncertainty,
 )
 from agents.selfplay import SelfPlayVecEnv
 from arena import RacingEnv
@@ -256,6 +257,25 @@ def test_train_with_uncertainty(tmp_path: Path, mode: str) -> None:
     assert summary["training"]["steps"] >= 512
     assert (tmp_path / mode / "policy.zip").is_file()
     assert (tmp_path / mode / "nature_sb3.zip").is_file() == (mode == "adversarial")
+
+
+def test_the_wide_arm_randomises_over_a_wider_set_than_the_one_scored() -> None:
+    # Over-randomisation (issue 17's "try others"): the grid's edges, where the first arms
+    # failed (friction 0.6: 40 of 54 monza races "stuck"), lie inside the training range.
+    from arena.uncertainty import DEFAULT_DYNAMICS, DYNAMICS
+
+    wide = training_uncertainty("wide")
+    assert wide.mode == "sample" and wide.nature_acts == default_config("sample").nature_acts
+    for name in DYNAMICS:
+        lo, hi = getattr(wide.dynamics, name)
+        base_lo, base_hi = getattr(DEFAULT_DYNAMICS, name)
+        assert lo <= base_lo and hi >= base_hi, name
+        if name != "latency":
+            assert hi - lo == pytest.approx(1.5 * (base_hi - base_lo)), name
+    assert wide.dynamics.friction == (0.4, 1.3)
+    assert wide.dynamics.latency == (0, 3)  # whole control steps
+    assert wide.dynamics.action_noise[0] == 0.0  # no negative noise amplitude
+    assert training_uncertainty("sample").dynamics == DEFAULT_DYNAMICS
 
 
 def test_train_rejects_an_unknown_uncertainty_mode(capsys: pytest.CaptureFixture[str]) -> None:
