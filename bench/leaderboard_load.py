@@ -6,13 +6,17 @@
    finished ranked races (100,000) of 2–8 cars, with their entries, rating history, track
    records, queue rows and a few hundred validation races — bulk ``INSERT``s, no races are
    simulated.
-2. Starts ``slipstream serve`` (uvicorn, one process) on 127.0.0.1.
+2. Starts ``slipstream serve --web-workers N`` on 127.0.0.1 (N: ``--web-workers``, default
+   ``slipstream serve``'s own default; a list such as ``1,2`` starts one server per count,
+   side by side, and measures every endpoint on each in turn, so the counts are compared in
+   the same minutes of a shared machine).
 3. For each GET endpoint of the app (every API operation and every page; the script checks
    that none is missing), runs one client, then ``--concurrency`` clients, in a closed loop
    for ``--seconds`` each; ids are drawn at random, authenticated endpoints use a token.
-4. Prints, per endpoint, the single-client p50 and the ``--concurrency``-client p50/p99
-   latency (ms) and requests/s, whether it meets issue 13's goals (single-client p50 ≤ 20 ms,
-   8-client p99 ≤ 150 ms), the machine and its load average, and ``--json``.
+4. Prints, per endpoint (and worker count), the single-client p50 and the
+   ``--concurrency``-client p50/p99 latency (ms) and requests/s, whether it meets issue 13's
+   goals (single-client p50 ≤ 20 ms, 8-client p99 ≤ 150 ms), the machine and its load average
+   (before, after, and the range seen between endpoints), and ``--json``.
 
 The server runs with its rate limits off (``SLIPSTREAM_RATE_LIMITS=false``): a load generator
 on one address would otherwise measure 429s.
@@ -23,7 +27,8 @@ two compete for the CPUs; the figures are a floor.
 Usage::
 
     python bench/leaderboard_load.py [--db sqlite|postgresql|URL] [--submissions 10000]
-        [--races 100000] [--seconds 5] [--concurrency 8] [--keep DIR] [--json]
+        [--races 100000] [--seconds 5] [--concurrency 8] [--web-workers N[,M...]]
+        [--keep DIR] [--only TEXT] [--json]
 """
 
 from __future__ import annotations
@@ -83,6 +88,7 @@ class Figures:
     p99_ms: float
     rps: float
     single_p50_ms: float = 0.0
+    web_workers: int = 1
 
 
 def _chunks(rows: list[dict[str, Any]]) -> Any:
@@ -257,16 +263,19 @@ def add_user(engine: Engine, name: str = "loadtester") -> str:
     return token
 
 
-def start_server(url: str, data_dir: Path, port: int) -> subprocess.Popen[bytes]:
+def start_server(url: str, data_dir: Path, port: int, web_workers: int) -> subprocess.Popen[bytes]:
     """``slipstream serve`` in a subprocess; returns once it answers /api/health."""
     cmd = [sys.executable, "-m", "leaderboard.cli", "serve", "--port", str(port),
-           "--db", url, "--data-dir", str(data_dir)]  # fmt: skip
+           "--db", url, "--data-dir", str(data_dir), "--web-workers", str(web_workers)]  # fmt: skip
     env = {**os.environ, "SLIPSTREAM_RATE_LIMITS": "false"}
     proc = subprocess.Popen(cmd, start_new_session=True, stdout=subprocess.DEVNULL, env=env)
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline:
         try:
             if httpx.get(f"http://127.0.0.1:{port}/api/health", timeout=2).status_code == 200:
+                # One process answered; the others started with it and finish within moments
+                # (nothing tells from outside which process answered).
+                time.sleep(3.0 if web_workers > 1 else 0.0)
                 return proc
         except httpx.HTTPError:
             pass
@@ -389,6 +398,25 @@ def endpoint_groups(n_subs: int, n_races: int, token: str) -> list[tuple[str, li
     ]
 
 
+def web_worker_counts(option: str | None) -> list[int]:
+    """The ``--web-workers`` option as a list of process counts (default: serve's default).
+
+    Raises:
+        SystemExit: not a comma list of positive integers.
+    """
+    from leaderboard.serving import default_web_workers
+
+    if option is None:
+        return [default_web_workers()]
+    try:
+        counts = [int(part) for part in option.split(",")]
+    except ValueError:
+        counts = []
+    if not counts or min(counts) < 1:
+        raise SystemExit(f"--web-workers: a comma list of counts >= 1, not {option!r}")
+    return counts
+
+
 def _route_of(label: str) -> str:
     return label.split(" ", 1)[0].split("?", 1)[0]
 
@@ -413,6 +441,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--races", type=int, default=100_000)
     ap.add_argument("--seconds", type=float, default=5.0, help="load duration per endpoint")
     ap.add_argument("--concurrency", type=int, default=8, help="clients in a closed loop")
+    ap.add_argument(
+        "--web-workers",
+        default=None,
+        help="server processes (slipstream serve --web-workers); a comma list compares counts "
+        "side by side (default: slipstream serve's default)",
+    )
     ap.add_argument(
         "--db",
         default="sqlite",
@@ -453,42 +487,58 @@ def main(argv: list[str] | None = None) -> int:
             )
         engine.dispose()
 
-        port = _free_port()
-        server = start_server(url, data_dir, port)
+        counts = web_worker_counts(args.web_workers)
+        servers: dict[int, tuple[subprocess.Popen[bytes], str]] = {}
         results: list[Figures] = []
-        load_before = os.getloadavg()
         try:
-            base = f"http://127.0.0.1:{port}"
+            for n in counts:
+                port = _free_port()
+                servers[n] = start_server(url, data_dir, port, n), f"http://127.0.0.1:{port}"
+            load_before = os.getloadavg()
+            loads = [load_before[0]]
             auth_headers = {"Authorization": f"Bearer {token}"}
             for label, paths, authed in endpoint_groups(n_subs, n_ranked, token):
                 if args.only and args.only not in label:
                     continue
                 headers = auth_headers if authed else {}
-                asyncio.run(_load(base, label, paths, 0.3, 1, headers))  # warm up
-                single = asyncio.run(_load(base, label, paths, args.seconds, 1, headers))
-                figures = asyncio.run(
-                    _load(base, label, paths, args.seconds, args.concurrency, headers)
-                )
-                figures.single_p50_ms = single.p50_ms
-                figures.errors += single.errors
-                results.append(figures)
-                print(
-                    f"{label}: 1 client p50 {single.p50_ms} ms; {args.concurrency} clients "
-                    f"p50 {figures.p50_ms} ms, p99 {figures.p99_ms} ms, {figures.errors} errors",
-                    file=sys.stderr,
-                )
+                for n in counts:  # each count in turn: compared under the same load
+                    base = servers[n][1]
+                    # Warm up every process's caches (one connection reaches one process).
+                    asyncio.run(_load(base, label, paths, 0.5, args.concurrency, headers))
+                    single = asyncio.run(_load(base, label, paths, args.seconds, 1, headers))
+                    figures = asyncio.run(
+                        _load(base, label, paths, args.seconds, args.concurrency, headers)
+                    )
+                    figures.single_p50_ms = single.p50_ms
+                    figures.errors += single.errors
+                    figures.web_workers = n
+                    results.append(figures)
+                    loads.append(os.getloadavg()[0])
+                    print(
+                        f"{label} ({n} web workers): 1 client p50 {single.p50_ms} ms; "
+                        f"{args.concurrency} clients p50 {figures.p50_ms} ms, p99 "
+                        f"{figures.p99_ms} ms, {figures.errors} errors; load {loads[-1]:.2f}",
+                        file=sys.stderr,
+                    )
         finally:
-            os.killpg(server.pid, signal.SIGTERM)
-            server.wait(timeout=30)
+            for proc, _base in servers.values():
+                os.killpg(proc.pid, signal.SIGTERM)
+                proc.wait(timeout=30)
         load_after = os.getloadavg()
 
     report = {
         "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs",
-        "load_average": {"before": load_before, "after": load_after},
+        "load_average": {
+            "before": load_before,
+            "after": load_after,
+            "min_1min": min(loads),
+            "max_1min": max(loads),
+        },
         "database": url.split(":", 1)[0],
         "submissions": n_subs,
         "races": n_ranked,
         "concurrency": args.concurrency,
+        "web_workers": counts,
         "seconds": args.seconds,
         "fill_s": fill_s,
         "goals": {"single_p50_ms": GOAL_SINGLE_P50_MS, "loaded_p99_ms": GOAL_LOADED_P99_MS},
@@ -504,15 +554,19 @@ def main(argv: list[str] | None = None) -> int:
         table = Table(
             title=f"{n_subs:,} submissions, {n_ranked:,} ranked races, {args.concurrency} "
             f"clients ({report['database']}); load average "
-            f"{load_before[0]:.2f} → {load_after[0]:.2f}"
+            f"{load_before[0]:.2f} → {load_after[0]:.2f} (range {min(loads):.2f}–{max(loads):.2f})"
         )
-        cols = ("endpoint", "requests", "errors", "1-client p50 ms", "p50 ms", "p99 ms", "req/s")
+        cols = (
+            "endpoint", "web workers", "requests", "errors", "1-client p50 ms", "p50 ms",
+            "p99 ms", "req/s",
+        )  # fmt: skip
         for col in (*cols, "goal"):
             table.add_column(col, justify="left" if col == "endpoint" else "right")
         for r in results:
             ok = r.single_p50_ms <= GOAL_SINGLE_P50_MS and r.p99_ms <= GOAL_LOADED_P99_MS
             table.add_row(
-                r.endpoint, str(r.requests), str(r.errors), f"{r.single_p50_ms:.1f}",
+                r.endpoint, str(r.web_workers), str(r.requests), str(r.errors),
+                f"{r.single_p50_ms:.1f}",
                 f"{r.p50_ms:.1f}", f"{r.p99_ms:.1f}", f"{r.rps:.0f}", "ok" if ok else "MISSED",
             )  # fmt: skip
         Console(width=160).print(table)

@@ -1,6 +1,7 @@
 """``slipstream serve | worker | submit | users``: run the leaderboard and talk to it.
 
-* ``serve``: the web app (API + site) under uvicorn, on 127.0.0.1:8000 by default.
+* ``serve``: the web app (API + site) under uvicorn, on 127.0.0.1:8000 by default, in
+  ``--web-workers`` processes (:func:`leaderboard.serving.serve_processes`).
 * ``worker``: claim races from the queue, run them (local processes or ``--ray-address``),
   store results and ratings; ``--once`` runs one batch, ``--max-races N`` stops after N.
 * ``submit BUNDLE --server URL --token T``: upload a bundle zip or folder.
@@ -46,6 +47,14 @@ def register(sub: Any) -> None:
     p = sub.add_parser("serve", help="run the leaderboard web service (API + website)")
     p.add_argument("--host", default="127.0.0.1", help="address to listen on")
     p.add_argument("--port", type=int, default=8000, help="port to listen on")
+    p.add_argument(
+        "--web-workers",
+        type=int,
+        default=None,
+        metavar="N",
+        help="server processes sharing the port ($SLIPSTREAM_WEB_WORKERS; default: one per "
+        "CPU core, at most 4); in-memory rate limits are divided between them",
+    )
     _db_options(p)
     p.set_defaults(handler=serve_command)
 
@@ -100,10 +109,11 @@ def register(sub: Any) -> None:
 
 def serve_command(args: argparse.Namespace) -> int:
     """Run ``slipstream serve``."""
-    from leaderboard.app import create_app  # noqa: PLC0415 - keeps `slipstream --help` fast
-    from leaderboard.serving import serve  # noqa: PLC0415 - only this command needs uvicorn
+    # Lazy: keeps `slipstream --help` fast; only this command needs uvicorn.
+    from leaderboard.serving import default_web_workers, serve_processes  # noqa: PLC0415
 
     settings = settings_from(args)
+    workers = args.web_workers or settings.web_workers or default_web_workers()
     if args.host not in (*settings.allowed_hosts, "0.0.0.0", "::", "*"):
         settings.allowed_hosts.append(args.host)  # the address served is a name it answers to
     elif args.host in ("0.0.0.0", "::") and "*" not in settings.allowed_hosts:
@@ -112,9 +122,12 @@ def serve_command(args: argparse.Namespace) -> int:
             "(set SLIPSTREAM_ALLOWED_HOSTS to the names clients use)",
             file=sys.stderr,
         )
-    app = create_app(settings)
-    print(f"leaderboard on http://{args.host}:{args.port}/ (API docs at /docs)", file=sys.stderr)
-    serve(app, settings, args.host, args.port)  # with head, body and keep-alive timeouts
+    processes = f"{workers} processes" if workers > 1 else "one process"
+    print(
+        f"leaderboard on http://{args.host}:{args.port}/ (API docs at /docs; {processes})",
+        file=sys.stderr,
+    )
+    serve_processes(settings, args.host, args.port, workers)  # head, body, keep-alive timeouts
     return 0
 
 

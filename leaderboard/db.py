@@ -15,6 +15,12 @@ from sqlalchemy.engine import make_url
 from sqlalchemy.orm import Session, sessionmaker
 
 SQLITE_BUSY_TIMEOUT_MS = 30_000  # writers wait for each other instead of failing at once
+# Connections kept open per engine. The web app answers requests from a pool of threads; with
+# SQLAlchemy's default of 5, the 6th concurrent request opened (and then closed) a connection
+# of its own every time — a new PostgreSQL backend process, or SQLite's pragmas — which
+# showed in the tail latencies with 8 clients (issue 13). Opened only as needed.
+POOL_SIZE = 16
+POOL_OVERFLOW = 16  # more at once still work, on short-lived connections
 
 
 def is_sqlite(url: str) -> bool:
@@ -28,6 +34,9 @@ def make_engine(url: str, **kwargs: Any) -> Engine:
     WAL lets the web process read while a worker writes; ``foreign_keys=ON`` makes SQLite
     enforce the same constraints as PostgreSQL.
     """
+    if make_url(url).database not in (None, "", ":memory:"):  # in-memory SQLite has no pool
+        kwargs.setdefault("pool_size", POOL_SIZE)
+        kwargs.setdefault("max_overflow", POOL_OVERFLOW)
     if is_sqlite(url):
         kwargs.setdefault("connect_args", {"check_same_thread": False, "timeout": 30})
         engine = create_engine(url, **kwargs)

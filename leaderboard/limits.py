@@ -27,6 +27,15 @@ Two ASGI middlewares, added by :func:`leaderboard.app.create_app`:
     (``memory://`` per process; ``redis://...`` to share them between server processes).
     Behind a reverse proxy, run uvicorn with ``--proxy-headers`` so the client address is the
     real one.
+
+Several server processes (``slipstream serve --web-workers N``, ``settings.web_workers``)
+each keep their own in-memory counters, and the kernel hands each new connection to any of
+them. So each process enforces its share of every limit, ``floor(limit / N)`` (at least 1,
+:func:`process_share`): whichever processes a client's requests reach, together they let
+through at most the configured limit; a client whose requests all reach one process (one
+keep-alive connection) gets at least ``1/N`` of it. The same holds for
+``max_concurrent_uploads``. With a shared storage (``redis://...``) the rate limits are not
+divided.
 """
 
 from __future__ import annotations
@@ -135,7 +144,8 @@ class BodyGuard:
         self.request_cap = int(settings.max_request_kb * 1024)
         self.idle_s = settings.body_idle_timeout_s
         self.upload_s = settings.upload_timeout_s
-        self.max_in_flight = settings.max_concurrent_uploads
+        # Counted per process: each of web_workers processes allows its share (module doc).
+        self.max_in_flight = process_share(settings.max_concurrent_uploads, processes(settings))
         self.check_uploader = check_uploader or check_uploader_default
         self.in_flight: dict[int, int] = {}  # user id -> uploads being received (this process)
 
@@ -263,6 +273,25 @@ def parse_limit(text: str) -> limits.RateLimitItem:
     return limits.parse(text)
 
 
+def processes(settings: Settings) -> int:
+    """How many server processes share the service (``settings.web_workers``, default 1)."""
+    return settings.web_workers or 1
+
+
+def process_share(amount: int, n_processes: int) -> int:
+    """One process's share of a limit of ``amount`` split between ``n_processes``:
+    ``floor(amount / n_processes)``, at least 1 (so the shares never add up to more than
+    ``amount`` unless ``amount`` < ``n_processes``)."""
+    return max(1, amount // max(1, n_processes))
+
+
+def share_of_rate(item: limits.RateLimitItem, n_processes: int) -> limits.RateLimitItem:
+    """The rate ``item`` with its amount divided by :func:`process_share` (same window)."""
+    if n_processes <= 1:
+        return item
+    return type(item)(process_share(item.amount, n_processes), item.multiples, item.namespace)
+
+
 def _client_ip(scope: Scope) -> str:
     client = scope.get("client")
     return str(client[0]) if client else "unknown"
@@ -285,9 +314,12 @@ class RateLimit:
         uri = settings.rate_limit_storage
         storage: Any = storage_from_string(uri if uri.startswith("async+") else f"async+{uri}")
         self.limiter = MovingWindowRateLimiter(storage)
-        self.per_ip = parse_limit(settings.rate_limit_ip)
-        self.per_token = parse_limit(settings.rate_limit_token)
-        self.auth_failures = parse_limit(settings.rate_limit_auth_failures)
+        # In-memory counters are this process's own: enforce its share (module docstring).
+        n = processes(settings) if uri.removeprefix("async+").startswith("memory") else 1
+        self.per_ip = share_of_rate(parse_limit(settings.rate_limit_ip), n)
+        self.per_token = share_of_rate(parse_limit(settings.rate_limit_token), n)
+        self.auth_failures = share_of_rate(parse_limit(settings.rate_limit_auth_failures), n)
+        self.processes = n
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         """Count one HTTP request against its limits; 429 once one is spent."""
@@ -322,12 +354,13 @@ class RateLimit:
         stats = await self.limiter.get_window_stats(item, *key)
         retry = max(1, math.ceil(stats.reset_time - time.time()))
         what = {"ip": "address", "token": "token", "authfail": "failed authentications"}[key[0]]
+        share = f" (this server process's share, of {self.processes})" if self.processes > 1 else ""
         await refuse(
             scope,
             receive,
             send,
             429,
-            f"rate limit of {item} per {what} reached; retry in {retry} s",
+            f"rate limit of {item} per {what}{share} reached; retry in {retry} s",
             {"Retry-After": str(retry)},
         )
 
@@ -343,4 +376,7 @@ __all__ = [
     "check_uploader_default",
     "is_upload",
     "parse_limit",
+    "process_share",
+    "processes",
+    "share_of_rate",
 ]

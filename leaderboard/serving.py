@@ -13,21 +13,42 @@ of the previous answer; otherwise the connection is closed. Bodies are then time
 :class:`~leaderboard.limits.BodyGuard`, and idle keep-alive connections by uvicorn
 (``settings.keep_alive_s``).
 
-:func:`serve` is what ``slipstream serve`` runs. Under another server (``uvicorn --factory
-leaderboard.app:create_app``), pass the class: ``--http leaderboard.serving:HeaderTimeoutH11``
-(10 s) — or put a reverse proxy with its own header timeout in front.
+:func:`serve_processes` is what ``slipstream serve`` runs: one process (:func:`serve`), or
+``--web-workers N`` uvicorn worker processes answering on one socket. One process runs Python
+on one core at a time (one GIL), so under concurrent requests they queue behind each other;
+several processes use several cores. The database is migrated once, by the parent, before
+any worker starts; each worker builds the app with :func:`worker_app` from the settings the
+parent hands down (:data:`SETTINGS_ENV`). What each process keeps for itself is either
+checked against the database on every use (the snapshot caches' fingerprints,
+:mod:`leaderboard.cache`), kept on disk (track pictures), or divided between the processes
+(the in-memory rate-limit counters and the uploads-in-flight cap, :mod:`leaderboard.limits`).
+
+Under another server (``uvicorn --factory leaderboard.app:create_app``), pass the class:
+``--http leaderboard.serving:HeaderTimeoutH11`` (10 s) — or put a reverse proxy with its own
+header timeout in front — and with ``--workers N`` set ``SLIPSTREAM_WEB_WORKERS=N`` so the
+rate limits are divided between the processes.
 """
 
 from __future__ import annotations
 
 import asyncio
+import json
 import math
-from typing import Any
+import os
+from typing import TYPE_CHECKING, Any
 
+from pydantic import SecretStr
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
+from leaderboard.errors import LeaderboardError
 from leaderboard.settings import Settings
 
+if TYPE_CHECKING:
+    from fastapi import FastAPI
+
+SETTINGS_ENV = "SLIPSTREAM_SERVE_SETTINGS"  # the parent's settings, as JSON, for its workers
+WORKER_HEALTHCHECK_S = 30  # a worker importing the app on a busy machine is not hung
+MAX_DEFAULT_WEB_WORKERS = 4  # past a few, the database (not Python) is what requests wait on
 DEFAULT_HEADER_TIMEOUT_S = 10.0  # = Settings.header_timeout_s's default
 
 
@@ -87,6 +108,20 @@ def http_protocol(header_timeout_s: float) -> type[HeaderTimeoutH11]:
     )
 
 
+class WorkerH11(HeaderTimeoutH11):
+    """The protocol of ``--web-workers`` processes (uvicorn imports it by name in each one);
+    :func:`worker_app` sets its ``header_timeout_s`` from the settings."""
+
+
+def _uvicorn_options(settings: Settings) -> dict[str, Any]:
+    """uvicorn options of every process: keep-alive timeout, connection limit, logging."""
+    return {
+        "log_level": "warning",
+        "timeout_keep_alive": math.ceil(settings.keep_alive_s),  # idle connections closed
+        "limit_concurrency": settings.max_connections,  # 503 beyond, instead of exhausting FDs
+    }
+
+
 def uvicorn_config(app: Any, settings: Settings, host: str, port: int) -> Any:
     """The uvicorn ``Config`` for ``app``: head/keep-alive timeouts, connection limit."""
     import uvicorn  # noqa: PLC0415 - the server only where it is run
@@ -95,10 +130,8 @@ def uvicorn_config(app: Any, settings: Settings, host: str, port: int) -> Any:
         app,
         host=host,
         port=port,
-        log_level="warning",
         http=http_protocol(settings.header_timeout_s),
-        timeout_keep_alive=math.ceil(settings.keep_alive_s),  # idle connections closed
-        limit_concurrency=settings.max_connections,  # 503 beyond, instead of exhausting FDs
+        **_uvicorn_options(settings),
     )
 
 
@@ -109,4 +142,93 @@ def serve(app: Any, settings: Settings, host: str, port: int) -> None:
     uvicorn.Server(uvicorn_config(app, settings, host, port)).run()
 
 
-__all__ = ["HeaderTimeoutH11", "http_protocol", "serve", "uvicorn_config"]
+def default_web_workers() -> int:
+    """``slipstream serve``'s process count when neither ``--web-workers`` nor
+    ``SLIPSTREAM_WEB_WORKERS`` says: one per CPU core, at most :data:`MAX_DEFAULT_WEB_WORKERS`."""
+    return max(1, min(os.cpu_count() or 1, MAX_DEFAULT_WEB_WORKERS))
+
+
+def settings_json(settings: Settings) -> str:
+    """``settings`` as JSON that :class:`Settings` reads back, secrets included (for the
+    worker processes' environment: readable only by the same user, like the parent's)."""
+    data = {
+        name: value.get_secret_value() if isinstance(value, SecretStr) else value
+        for name, value in settings.model_dump().items()
+    }
+    return json.dumps(data, default=str)
+
+
+def worker_app() -> FastAPI:
+    """The app of one ``--web-workers`` process (a uvicorn factory), from the settings its
+    parent put in :data:`SETTINGS_ENV`; the parent has already migrated the database.
+
+    Raises:
+        LeaderboardError: :data:`SETTINGS_ENV` is not set (not started by
+            :func:`serve_processes`).
+    """
+    from leaderboard.app import create_app  # noqa: PLC0415 - the app imports this module's users
+
+    text = os.environ.get(SETTINGS_ENV)
+    if not text:
+        raise LeaderboardError(f"{SETTINGS_ENV} is not set: start workers with `slipstream serve`")
+    settings = Settings(**json.loads(text))
+    WorkerH11.header_timeout_s = settings.header_timeout_s  # this process's protocol class
+    return create_app(settings)
+
+
+def serve_processes(settings: Settings, host: str, port: int, workers: int) -> None:
+    """Serve the app on ``host:port`` from ``workers`` processes until interrupted.
+
+    One worker runs in this process (:func:`serve`). Several: the schema is migrated here
+    first (``settings.auto_migrate``), then uvicorn's supervisor binds the socket and starts
+    ``workers`` processes that share it (a dead one is replaced), each building the app with
+    :func:`worker_app`; ``settings.web_workers`` tells each how many there are.
+
+    Raises:
+        LeaderboardError: ``workers`` < 1.
+    """
+    import uvicorn  # noqa: PLC0415 - the server only where it is run
+
+    from leaderboard.app import create_app  # noqa: PLC0415 - builds the app, after settings
+
+    if workers < 1:
+        raise LeaderboardError(f"--web-workers must be at least 1, not {workers}")
+    settings = settings.model_copy(update={"web_workers": workers})
+    if workers == 1:
+        serve(create_app(settings), settings, host, port)
+        return
+    settings.ensure_dirs()
+    if settings.auto_migrate:  # once, before any worker connects
+        from leaderboard.db import make_engine  # noqa: PLC0415
+        from leaderboard.migrations import upgrade  # noqa: PLC0415 - alembic, here only
+
+        engine = make_engine(settings.db_url)
+        try:
+            upgrade(settings.db_url, engine=engine)
+        finally:
+            engine.dispose()
+    os.environ[SETTINGS_ENV] = settings_json(settings.model_copy(update={"auto_migrate": False}))
+    uvicorn.run(
+        "leaderboard.serving:worker_app",
+        factory=True,
+        host=host,
+        port=port,
+        workers=workers,
+        http="leaderboard.serving:WorkerH11",
+        timeout_worker_healthcheck=WORKER_HEALTHCHECK_S,
+        **_uvicorn_options(settings),
+    )
+
+
+__all__ = [
+    "SETTINGS_ENV",
+    "HeaderTimeoutH11",
+    "WorkerH11",
+    "default_web_workers",
+    "http_protocol",
+    "serve",
+    "serve_processes",
+    "settings_json",
+    "uvicorn_config",
+    "worker_app",
+]
