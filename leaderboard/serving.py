@@ -35,6 +35,7 @@ import asyncio
 import json
 import math
 import os
+import socket
 from typing import TYPE_CHECKING, Any
 
 from pydantic import SecretStr
@@ -110,7 +111,21 @@ def http_protocol(header_timeout_s: float) -> type[HeaderTimeoutH11]:
 
 class WorkerH11(HeaderTimeoutH11):
     """The protocol of ``--web-workers`` processes (uvicorn imports it by name in each one);
-    :func:`worker_app` sets its ``header_timeout_s`` from the settings."""
+    :func:`worker_app` sets its ``header_timeout_s`` from the settings.
+
+    It turns Nagle's algorithm off on every connection. uvicorn's supervisor binds the shared
+    socket itself, without naming the protocol (``proto`` 0), and asyncio sets
+    ``TCP_NODELAY`` only on connections accepted from a socket whose ``proto`` is TCP; without
+    it an answer's body waited for the client's delayed ACK of its head: 40 ms added to every
+    request on Linux (measured: one client's p50 18 → 60 ms with two processes).
+    """
+
+    def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
+        """Send small writes at once (see the class docstring), then as the parent does."""
+        sock = transport.get_extra_info("socket")
+        if sock is not None and sock.family in (socket.AF_INET, socket.AF_INET6):
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        super().connection_made(transport)
 
 
 def _uvicorn_options(settings: Settings) -> dict[str, Any]:

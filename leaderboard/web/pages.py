@@ -54,6 +54,7 @@ from markupsafe import Markup
 
 from leaderboard import auth, queries, tournaments
 from leaderboard.api.deps import IdPath, PageDep, SessionDep, SettingsDep
+from leaderboard.cache import cache_for
 from leaderboard.errors import NotFound
 from leaderboard.matchmaking import library_tracks, track_pool
 from leaderboard.models import MU0, SIGMA0
@@ -291,32 +292,39 @@ def submission_page(
     submission_id: IdPath,
     viewer: ViewerDep,
 ) -> HTMLResponse:
-    """One submission: facts, rating history chart, versions and races."""
-    sub = queries.submission_detail(
-        session, submission_id, races=0, provisional_races=settings.provisional_races
+    """One submission: facts, rating history chart, versions and races.
+
+    What every visitor sees is cached under :func:`queries.submission_fingerprint` (a few
+    index look-ups); only whether the viewer owns it is worked out per request."""
+
+    def compute() -> dict[str, Any]:
+        sub = queries.submission_detail(
+            session, submission_id, races=0, provisional_races=settings.provisional_races
+        )
+        races = queries.submission_entries(
+            session, submission_id, page=pages.page, per_page=pages.per_page
+        )
+        # The chart starts from the prior (race 0), then one point after each rated race.
+        history = [(MU0, SIGMA0)] + [(p.mu, p.sigma) for p in sub.rating_history]
+        return {
+            "sub": sub,
+            "versions": sub.versions,
+            "races": races.items,
+            "history_svg": rating_history_svg(history),
+            "bests": queries.track_bests(session, submission_id),
+            "h2h": queries.head_to_head(session, submission_id),
+            "validation": queries.validation_races(session, submission_id),
+            "api_url": f"/api/submissions/{submission_id}",
+        } | _pager(races, f"/submissions/{submission_id}")
+
+    view = cache_for(session).get(
+        ("submission-page", submission_id, pages.page, pages.per_page, settings.provisional_races),
+        queries.submission_fingerprint(session, submission_id),
+        compute,
+        settings.cache_max_age_s,
     )
-    races = queries.submission_entries(
-        session, submission_id, page=pages.page, per_page=pages.per_page
-    )
-    # The chart starts from the prior (race 0), then one point after each rated race.
-    history = [(MU0, SIGMA0)] + [(p.mu, p.sigma) for p in sub.rating_history]
-    context = {
-        "sub": sub,
-        "versions": sub.versions,
-        "races": races.items,
-        "history_svg": rating_history_svg(history),
-        "bests": queries.track_bests(session, submission_id),
-        "h2h": queries.head_to_head(session, submission_id),
-        "validation": queries.validation_races(session, submission_id),
-        "is_owner": viewer is not None and viewer.name == sub.author,
-        "api_url": f"/api/submissions/{submission_id}",
-    }
-    return _render(
-        request,
-        "submission.html",
-        context | _pager(races, f"/submissions/{submission_id}"),
-        viewer,
-    )
+    is_owner = viewer is not None and viewer.name == view["sub"].author
+    return _render(request, "submission.html", view | {"is_owner": is_owner}, viewer)
 
 
 @web_router.get("/tournaments", response_class=HTMLResponse)

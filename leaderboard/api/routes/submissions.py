@@ -110,7 +110,11 @@ def get_submission(
 ) -> queries.SubmissionDetail:
     """A submission: rating, rank, versions, recent races, rating history."""
     return queries.submission_detail(
-        session, submission_id, races=races, provisional_races=settings.provisional_races
+        session,
+        submission_id,
+        races=races,
+        provisional_races=settings.provisional_races,
+        max_age_s=settings.cache_max_age_s,
     )
 
 
