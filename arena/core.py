@@ -296,16 +296,23 @@ def episode_step(
     gate = rules.gate_s[st.next_gate]
     before = rules.delta_s(ops, gate, st.s)
     crossed = (ds > 0) & (ds <= rules.max_jump) & (before > 0) & (before <= ds) & active
-    finish_line = crossed & (st.next_gate == 0)
-    started = st.laps >= 0  # laps is -1 until the first crossing of the line, then counts
-    lap_done = finish_line & started
-    first_cross = finish_line & ~started
-    laps = where(finish_line, st.laps + 1, st.laps)
-    next_gate = where(crossed, st.next_gate + 1, st.next_gate)
-    next_gate = where(next_gate >= rules.gate_s.shape[0], 0, next_gate)
-    line_time = where(first_cross & ~st.grid_start[:, None], now_n, st.line_time)
-    lap_time = where(lap_done, now_n - line_time, 0.0)
-    line_time = where(lap_done, now_n, line_time)
+    if isinstance(crossed, np.ndarray) and not np.count_nonzero(crossed):
+        # The common case on one race (a car passes a gate every second or so): the same
+        # values as below, without the work.
+        lap_done, lap_time = crossed, ops.zeros(crossed.shape)
+        laps, next_gate, line_time, last_lap = st.laps, st.next_gate, st.line_time, st.last_lap
+    else:
+        finish_line = crossed & (st.next_gate == 0)
+        started = st.laps >= 0  # laps is -1 until the first crossing of the line, then counts
+        lap_done = finish_line & started
+        first_cross = finish_line & ~started
+        laps = where(finish_line, st.laps + 1, st.laps)
+        next_gate = where(crossed, st.next_gate + 1, st.next_gate)
+        next_gate = where(next_gate >= rules.gate_s.shape[0], 0, next_gate)
+        line_time = where(first_cross & ~st.grid_start[:, None], now_n, st.line_time)
+        lap_time = where(lap_done, now_n - line_time, 0.0)
+        line_time = where(lap_done, now_n, line_time)
+        last_lap = where(lap_done, lap_time, st.last_lap)
     laps_completed = ops.maximum(laps, 0)
 
     # DeepRacer's off-track rule: all four wheels off the road.
@@ -342,7 +349,7 @@ def episode_step(
     slot = ops.mod(steps, w)
     oldest = ops.mod(steps + 1, w)
     if isinstance(st.history, np.ndarray):  # plain indexing: same values, less work
-        rows = np.arange(len(slot))
+        rows = ops.arange(len(slot))
         history = st.history.copy()
         history[rows, slot] = race_progress
         moved = race_progress - history[rows, oldest]
@@ -357,15 +364,21 @@ def episode_step(
         still & (sensed.upright < FLIP_UPRIGHT) if sensed.upright is not None else still & False
     )
     terminated = newly_finished | stuck | lost | flipped
-    reason = where(stuck, STUCK, 0)
+    crashed = None
     if rules.end_on_crash or rules.end_on_wall:  # static configuration
         hit = sensed.wall | ops.any(contact, axis=-1) if rules.end_on_crash else sensed.wall
         crashed = still & hit
         terminated = terminated | crashed
-        reason = where(crashed, CRASHED, reason)
     truncated = active & ~terminated & (steps >= rules.max_cycles)[:, None]
-    reason = where(lost, OFF_TRACK, reason)
-    dnf = where(flipped, FLIPPED, reason) + where(truncated, TIME_LIMIT, 0)
+    done = terminated | truncated
+    if isinstance(done, np.ndarray) and not np.count_nonzero(done):
+        dnf = np.zeros(done.shape, dtype=np.int64)  # the common case on one race
+    else:
+        reason = where(stuck, STUCK, 0)
+        if crashed is not None:
+            reason = where(crashed, CRASHED, reason)
+        reason = where(lost, OFF_TRACK, reason)
+        dnf = where(flipped, FLIPPED, reason) + where(truncated, TIME_LIMIT, 0)
 
     wall = sensed.wall & active
     terms = racing_terms(
@@ -374,7 +387,6 @@ def episode_step(
     reward = terms[RACING_TERMS[0]]
     for name in RACING_TERMS[1:]:
         reward = reward + terms[name]
-    done = terminated | truncated
     new = EpisodeState(
         s=sensed.s,
         next_gate=next_gate,
@@ -386,7 +398,7 @@ def episode_step(
         finish_time=finish_time,
         off_time=off_time,
         line_time=line_time,
-        last_lap=where(lap_done, lap_time, st.last_lap),
+        last_lap=last_lap,
         contact=contact,
         history=history,
         steps=steps,

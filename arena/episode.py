@@ -17,6 +17,7 @@ reset and step returns a :class:`Frame` of host numpy arrays.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -421,19 +422,21 @@ class RaceEpisodeEnv(ParallelEnv):
             assert self._frame is not None
             steer, throttle = self.discrete.to_controls(idx, self._frame.v_long)
             return np.where(active, steer, 0.0), np.where(active, throttle, 0.0)
-        cmd = np.zeros((n, 2))
+        cmd: list[tuple[float, ...]] = [(0.0, 0.0)] * n
         for agent, act in actions.items():
-            if type(act) is np.ndarray and act.shape == (2,):  # the usual case: as it is
-                cmd[self.agent_index[agent]] = act
-                continue
-            a = np.asarray(act, dtype=np.float64).reshape(-1)
-            if a.shape != (2,):
+            a = np.asarray(act, dtype=np.float64)
+            if a.size != 2:
                 raise SimError(f"action for {agent} must have shape (2,), got {a.shape}")
-            cmd[self.agent_index[agent]] = a
+            cmd[self.agent_index[agent]] = tuple(a.reshape(-1).tolist())
         # NaN means "no input"; ±inf saturate. The env never lets a bad number into physics.
-        # (minimum/maximum: np.clip's values without its overhead, a hot path.)
-        cmd = np.minimum(np.maximum(np.where(np.isnan(cmd), 0.0, cmd), -1.0), 1.0) * active[:, None]
-        return cmd[:, 0], cmd[:, 1]
+        # In Python floats per car: np.clip's values (min and max keep their first argument
+        # unless the other compares beyond it), without numpy's per-call overhead.
+        steers, throttles = [], []
+        for (u, v), on in zip(cmd, active.tolist(), strict=True):
+            racing = 1.0 if on else 0.0
+            steers.append(min(max(0.0 if math.isnan(u) else u, -1.0), 1.0) * racing)
+            throttles.append(min(max(0.0 if math.isnan(v) else v, -1.0), 1.0) * racing)
+        return np.array(steers), np.array(throttles)
 
     def step(
         self, actions: dict[str, Any]

@@ -197,13 +197,12 @@ def opponent_features(
     others = ops.sum(valid, axis=-1)  # (..., n) visible other cars
     flag = ops.cast(ops.arange(m) < others[..., None], dist.dtype)  # (..., n, m)
     scale = ops.stack([flag * (1.0 / max_range), flag * (1.0 / v_max)], axis=-1)
-    forward = (cos * x + sin * y) * scale  # [dx, dvx] forward
-    leftward = (cos * y - sin * x) * scale  # [dy, dvy] to the left
-    block = ops.stack(
-        [flag, forward[..., 0], leftward[..., 0], forward[..., 1], leftward[..., 1]], axis=-1
-    )
-    if m < k:
-        block = ops.concat([block, ops.zeros((*lead, n, k - m, len(OPPONENT_FEATURES)))], -2)
+    # Filled in place: [present, dx, dy, dvx, dvy] interleaves the two blocks below, and
+    # slots beyond m (fewer cars than k) stay zero.
+    block = ops.zeros((*lead, n, k, len(OPPONENT_FEATURES)), dtype=dist.dtype)
+    block[..., :m, 0] = flag
+    block[..., :m, 1::2] = (cos * x + sin * y) * scale  # [dx, dvx] forward
+    block[..., :m, 2::2] = (cos * y - sin * x) * scale  # [dy, dvy] to the left
     return block
 
 

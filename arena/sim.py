@@ -29,6 +29,7 @@ physics changes pursuit lap times by under 0.5% and turn radii by 2%, at 1.6× t
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
 import os
 import tempfile
@@ -192,13 +193,21 @@ def car_corners(poses: FloatArray, length: float, width: float) -> FloatArray:
 
     Order: front-left, rear-left, rear-right, front-right (counter-clockwise).
     """
-    hl, hw = 0.5 * length, 0.5 * width
-    lx, ly = np.array([hl, -hl, -hl, hl]), np.array([hw, hw, -hw, -hw])  # car frame, m
+    lx, ly = _corner_offsets(length, width)
     cos, sin = np.cos(poses[:, 2])[:, None], np.sin(poses[:, 2])[:, None]
     out = np.empty((len(poses), 4, 2))
     out[..., 0] = poses[:, 0:1] + cos * lx - sin * ly
     out[..., 1] = poses[:, 1:2] + sin * lx + cos * ly
     return out
+
+
+@functools.lru_cache(maxsize=16)
+def _corner_offsets(length: float, width: float) -> tuple[FloatArray, FloatArray]:
+    """x and y (4,) m of the corners in the car frame, in :func:`car_corners`' order."""
+    hl, hw = 0.5 * length, 0.5 * width
+    lx, ly = np.array([hl, -hl, -hl, hl]), np.array([hw, hw, -hw, -hw])
+    lx.flags.writeable = ly.flags.writeable = False
+    return lx, ly
 
 
 def drive_force(throttle: float, v_long: float, p: CarParams, motor: float, mass: float) -> float:
@@ -478,8 +487,8 @@ class Simulator:
         self.substeps_done = 0
         return self._observe(np.zeros(self.n_cars, bool), np.zeros((self.n_cars,) * 2, bool))
 
-    def _read(self) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """Positions (n, 3), quaternions (n, 4) and velocities (n, 6) [lin, ang] of all cars."""
+    def _read(self) -> list[tuple[float, ...]]:
+        """Per car, [x, y, z, quaternion x, y, z, w, vx, vy, vz, wx, wy, wz] (13 floats)."""
         c, get_pose, get_vel = self.client, pb.getBasePositionAndOrientation, pb.getBaseVelocity
         rows = []
         for body in self.cars:
@@ -487,25 +496,35 @@ class Simulator:
             lin, ang = get_vel(body, c)
             rows.append(pos + quat + lin + ang)
         self._last_read = rows
-        # One array from flat tuples is much cheaper than several, or filling rows one by one.
-        table = np.array(rows, dtype=np.float64)  # (n, 13)
-        return table[:, 0:3].copy(), table[:, 3:7], table[:, 7:13]
+        return rows
 
     def _observe(self, wall: BoolArray, cars: BoolArray) -> SimState:
-        pos, quat, vel = self._read()
-        yaw = _yaw(quat)
-        cos, sin = np.cos(yaw), np.sin(yaw)
-        v_long = cos * vel[:, 0] + sin * vel[:, 1]
-        v_lat = -sin * vel[:, 0] + cos * vel[:, 1]
-        qx, qy = quat[:, 0], quat[:, 1]
-        pos[:, 2] = yaw  # [x, y, yaw]: z is not needed
+        # Arithmetic per car in Python floats (the values numpy gives, without its per-call
+        # overhead on a few cars); the angle functions stay numpy's, on arrays.
+        rows = self._read()
+        yaw_y, yaw_x, upright = [], [], []
+        for row in rows:
+            qx, qy, qz, qw = row[3:7]
+            yaw_y.append(2.0 * (qw * qz + qx * qy))
+            yaw_x.append(1.0 - 2.0 * (qy * qy + qz * qz))
+            upright.append(1.0 - 2.0 * (qx * qx + qy * qy))
+        yaw = np.arctan2(np.array(yaw_y), np.array(yaw_x))  # as _yaw
+        poses, velocity, v_long, v_lat = [], [], [], []
+        for row, a, cos, sin in zip(
+            rows, yaw.tolist(), np.cos(yaw).tolist(), np.sin(yaw).tolist(), strict=True
+        ):
+            vx, vy = row[7], row[8]
+            poses.append((row[0], row[1], a))
+            velocity.append((vx, vy, row[12]))
+            v_long.append(cos * vx + sin * vy)
+            v_lat.append(-sin * vx + cos * vy)
         return SimState(
-            poses=pos,
-            velocity=vel[:, [0, 1, 5]],
-            v_long=v_long,
-            v_lat=v_lat,
+            poses=np.array(poses),
+            velocity=np.array(velocity),
+            v_long=np.array(v_long),
+            v_lat=np.array(v_lat),
             steering=self.steering.copy(),
-            upright=1.0 - 2.0 * (qx * qx + qy * qy),
+            upright=np.array(upright),
             wall_contact=wall,
             car_contact=cars,
             time=self.time,
@@ -525,13 +544,16 @@ class Simulator:
         """
         p = self.params
         s = self.scales
-        # np.minimum/np.maximum: the same numbers as np.clip, a third of its cost on (n,).
-        target = _clip(
-            _clip(steer_cmd, -1.0, 1.0) * p.max_steer * s.steer_gain + s.steer_offset,
-            -p.max_steer,
-            p.max_steer,
-        ).tolist()
-        tyres = self._tyre_constants(_clip(throttle, -1.0, 1.0).tolist())
+        # In Python floats per car: np.clip's numbers (NaN stays NaN: min and max return
+        # their first argument unless the other compares beyond it) without numpy's
+        # per-call overhead on a few cars.
+        target = []
+        for u, gain, offset in zip(
+            _floats(steer_cmd), s.steer_gain.tolist(), s.steer_offset.tolist(), strict=True
+        ):
+            angle = min(max(u, -1.0), 1.0) * p.max_steer * gain + offset
+            target.append(min(max(angle, -p.max_steer), p.max_steer))
+        tyres = self._tyre_constants([min(max(u, -1.0), 1.0) for u in _floats(throttle)])
         wall = np.zeros(self.n_cars, dtype=bool)
         touching = np.zeros((self.n_cars, self.n_cars), dtype=bool)
         max_delta, low = p.steer_rate * self.dt, -p.steer_rate * self.dt
@@ -741,9 +763,10 @@ class Simulator:
             pb.restoreState(fileName=path, physicsClientId=self.client)
 
 
-def _clip(x: Any, lo: float, hi: float) -> FloatArray:
-    """``np.clip(x, lo, hi)`` for small float arrays (NaN stays NaN), without its overhead."""
-    return np.minimum(np.maximum(x, lo), hi)
+def _floats(x: Any) -> list[float]:
+    """(n,) numbers as a list of Python floats (float64 values)."""
+    out: list[float] = np.asarray(x, dtype=np.float64).tolist()
+    return out
 
 
 def _yaw(quat: FloatArray) -> FloatArray:

@@ -470,8 +470,9 @@ class Track:
     def _locate(self, s: ArrayLike) -> tuple[IntArray, FloatArray]:
         """Segment index and fraction ``t`` in [0, 1) for progress values."""
         sw = self.wrap_s(s)
-        # minimum/maximum: np.clip's result on integers, without its overhead (a hot path).
-        i = np.minimum(np.maximum(self.s.searchsorted(sw, side="right") - 1, 0), self.n_points - 1)
+        # No clamp needed: ``sw`` lies in [0, L] (or is NaN, sorted last) and ``s`` starts at
+        # 0, so the right-side insertion index is 1..N.
+        i = self.s.searchsorted(sw, side="right") - 1
         t = (sw - self.s[i]) / self.segment_lengths[i]
         return i.astype(np.int64, copy=False), t
 
@@ -502,10 +503,9 @@ class Track:
         """Frenet (M, 2) [s m, d m] → Cartesian (M, 2) [x m, y m]; exact inverse of ``project``."""
         f = _as_points(frenet, "frenet coordinates")
         i, t = self._locate(f[:, 0])
-        j = (i + 1) % self.n_points
         tt = t[:, None]
-        base = self.centre[i] + tt * (self.centre[j] - self.centre[i])
-        normal = self.normals[i] + tt * (self.normals[j] - self.normals[i])
+        base = self.centre[i] + tt * self._centre_steps[i]
+        normal = self.normals[i] + tt * self._normal_steps[i]
         return base + f[:, 1:2] * normal
 
     @cached_property
@@ -523,6 +523,21 @@ class Track:
         return np.stack([*cols, -_cross(e, dn), _cross(e, nrm)])
 
     @cached_property
+    def _centre_steps(self) -> FloatArray:
+        """(N, 2) m: segment vectors ``centre[i+1] - centre[i]`` (the last closes the loop)."""
+        return np.roll(self.centre, -1, axis=0) - self.centre
+
+    @cached_property
+    def _normal_steps(self) -> FloatArray:
+        """(N, 2) change of the unit normal along each segment ``i -> i+1``."""
+        return np.roll(self.normals, -1, axis=0) - self.normals
+
+    @cached_property
+    def _tangent_steps(self) -> FloatArray:
+        """(N, 2) change of the unit tangent along each segment ``i -> i+1``."""
+        return np.roll(self.tangents, -1, axis=0) - self.tangents
+
+    @cached_property
     def _frame_rows(self) -> list[tuple[float, ...]]:
         """:attr:`_frame_table` as one tuple of 10 Python floats per segment (N,)."""
         return [tuple(row) for row in self._frame_table.T.tolist()]
@@ -536,7 +551,7 @@ class Track:
         processed in blocks of ``_PROJECT_BLOCK`` so the temporaries stay in the CPU cache.
         """
         p = _as_points(points)
-        m, n = len(p), self.n_points
+        m = len(p)
         if m <= _PROJECT_FEW:  # the env's cars every step
             seg, tb, db = self._project_few(p)
         elif m <= _PROJECT_BLOCK:  # one block: no copies
@@ -549,8 +564,7 @@ class Track:
                 hi = min(lo + _PROJECT_BLOCK, m)
                 seg[lo:hi], tb[lo:hi], db[lo:hi] = self._project_block(p[lo:hi])
         s = self.wrap_s(self.s[seg] + tb * self.segment_lengths[seg])
-        tan0 = self.tangents[seg]
-        tan = tan0 + tb[:, None] * (self.tangents[(seg + 1) % n] - tan0)
+        tan = self.tangents[seg] + tb[:, None] * self._tangent_steps[seg]
         heading = np.arctan2(tan[:, 1], tan[:, 0])
         return Projection(s=s, d=db, heading=heading, segment=seg)
 
@@ -629,7 +643,9 @@ class Track:
         points = zip(p.tolist(), np.reshape(nearest, (len(p), k)).tolist(), strict=True)
         for (px, py), near in points:
             best, best_cost, best_t, best_d = -1, inf, 0.0, 0.0
-            for j in [v % n for v in near] + [(v - 1) % n for v in near]:
+            # The block's candidates in its order; one of the nearest vertices' segments is
+            # usually listed twice, and a repeat can never be a strictly smaller minimum.
+            for j in dict.fromkeys([v % n for v in near] + [(v - 1) % n for v in near]):
                 cx, cy, nx, ny, ex, ey, dnx, dny, qa, en = rows[j]
                 qx = px - cx
                 qy = py - cy

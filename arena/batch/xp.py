@@ -23,6 +23,7 @@ import numpy as np
 from tracks.errors import SlipstreamError
 
 Array = Any  # a numpy ndarray or a torch Tensor, as the ops' library makes them
+_FEW_ROWS = 64  # up to this many rows, NumpyOps.inverse_permutation sorts (see there)
 
 
 class DeviceError(SlipstreamError):
@@ -183,13 +184,13 @@ class NumpyOps:
 
     def inverse_permutation(self, order: Array) -> Array:
         """The inverse of permutations along the last axis (``inv[order[k]] = k``)."""
-        # A scatter is cheaper than a second sort (and exact: argsort of a permutation is
-        # its inverse).
+        # Exact either way: argsort of a permutation is its inverse. A scatter is cheaper
+        # than a second sort on many rows; on a few short ones the sort is (no 2-D index).
         if order.ndim == 1:
             inv = np.empty_like(order)
             inv[order] = _arange(len(order))
             return inv
-        if order.ndim == 2:
+        if order.ndim == 2 and order.shape[0] > _FEW_ROWS:
             inv = np.empty_like(order)
             inv[_arange(order.shape[0])[:, None], order] = _arange(order.shape[1])
             return inv
