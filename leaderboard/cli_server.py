@@ -52,8 +52,8 @@ def register(sub: Any) -> None:
         type=int,
         default=None,
         metavar="N",
-        help="server processes sharing the port ($SLIPSTREAM_WEB_WORKERS; default: one per "
-        "CPU core, at most 4); in-memory rate limits are divided between them",
+        help="server processes sharing the port ($SLIPSTREAM_WEB_WORKERS; default 1); "
+        "in-memory rate limits are divided between them",
     )
     _db_options(p)
     p.set_defaults(handler=serve_command)

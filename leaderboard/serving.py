@@ -49,7 +49,11 @@ if TYPE_CHECKING:
 
 SETTINGS_ENV = "SLIPSTREAM_SERVE_SETTINGS"  # the parent's settings, as JSON, for its workers
 WORKER_HEALTHCHECK_S = 30  # a worker importing the app on a busy machine is not hung
-MAX_DEFAULT_WEB_WORKERS = 4  # past a few, the database (not Python) is what requests wait on
+# One: on the 2 shared cores measured (bench/leaderboard_load.py --web-workers 1,2, README),
+# a second process lowered the 8-client p50 (69 -> 59 ms, median of 35 endpoints) but raised
+# the p99 (283 -> 355 ms): the processes, the load generator and the rest of the machine
+# compete for the same two cores. On a machine with cores to spare, set --web-workers.
+DEFAULT_WEB_WORKERS = 1
 DEFAULT_HEADER_TIMEOUT_S = 10.0  # = Settings.header_timeout_s's default
 
 
@@ -159,8 +163,8 @@ def serve(app: Any, settings: Settings, host: str, port: int) -> None:
 
 def default_web_workers() -> int:
     """``slipstream serve``'s process count when neither ``--web-workers`` nor
-    ``SLIPSTREAM_WEB_WORKERS`` says: one per CPU core, at most :data:`MAX_DEFAULT_WEB_WORKERS`."""
-    return max(1, min(os.cpu_count() or 1, MAX_DEFAULT_WEB_WORKERS))
+    ``SLIPSTREAM_WEB_WORKERS`` says: :data:`DEFAULT_WEB_WORKERS`."""
+    return DEFAULT_WEB_WORKERS
 
 
 def settings_json(settings: Settings) -> str:

@@ -102,9 +102,9 @@ class Settings(BaseSettings):
     web_workers: int | None = Field(
         default=None,
         ge=1,
-        description="processes serving the app: `slipstream serve`'s default (unset: one per "
-        "CPU core, at most 4), and the count in-memory rate limits are divided by (unset: 1; "
-        "set it to N under `uvicorn --workers N`)",
+        description="processes serving the app: `slipstream serve`'s default (unset: 1), "
+        "and the count in-memory rate limits are divided by (unset: 1; set it to N under "
+        "`uvicorn --workers N`)",
     )
     rate_limits: bool = Field(default=True, description="enforce the rate limits below")
     rate_limit_ip: str = Field(default="600/minute", description="requests per client address")
