@@ -26,6 +26,7 @@ IntArray = NDArray[np.int64]
 
 DEFAULT_FOV = math.radians(270.0)  # rad, as the F1TENTH Hokuyo
 DEFAULT_RANGE = 10.0  # m
+_NEXT_CORNER = np.array([1, 2, 3, 0])  # each car corner's successor round the rectangle
 
 
 class Lidar:
@@ -73,6 +74,13 @@ class Lidar:
         self._dir_x: FloatArray = self.dirs[:, 0].copy()
         self._dir_y: FloatArray = self.dirs[:, 1].copy()
         self._layouts: dict[tuple[int, int], _Layout] = {}
+        self._shift_tile: FloatArray = self._shifts.copy()
+
+    def _shift_pairs(self, k: int) -> FloatArray:
+        """(2k,) rad: the two shifts of :attr:`_shifts` once per segment (grown on demand)."""
+        if len(self._shift_tile) < 2 * k:
+            self._shift_tile = np.tile(self._shifts, 2 * k)
+        return self._shift_tile[: 2 * k]
 
     def _layout(self, n: int, n_edges: int) -> _Layout:
         """Constant index arrays for ``n`` scanners and ``n_edges`` car edges (built once)."""
@@ -85,8 +93,8 @@ class Lidar:
                 usable[:, n_wall:] = ~np.repeat(np.eye(n, dtype=bool), 4, axis=1)
             # m² per segment beyond which it cannot be hit: walls from their longest segment;
             # the cars' edges (at most a car long) get a generous 1.5 ranges + 1 m.
-            reach = np.full(n_seg, (self.max_range * 1.5 + 1.0) ** 2)
-            reach[:n_wall] = self._wall_reach
+            reach = np.full((n, n_seg), (self.max_range * 1.5 + 1.0) ** 2)
+            reach[:, :n_wall] = self._wall_reach
             if len(self._dir_x) < n * self.n_rays:
                 self._dir_x = np.tile(self.dirs[:, 0], n)
                 self._dir_y = np.tile(self.dirs[:, 1], n)
@@ -113,7 +121,7 @@ class Lidar:
         if car_corners is not None and len(car_corners) > 1:
             # Every car's 4 edges, shared by all scanners (the order of the segments does not
             # matter: each ray keeps its nearest hit).
-            edges = np.concatenate([car_corners, car_corners[:, [1, 2, 3, 0]]], axis=-1)
+            edges = np.concatenate([car_corners, car_corners[:, _NEXT_CORNER]], axis=-1)
             layout = self._layout(n, 4 * len(car_corners))
             seg = np.empty((n, layout.n_seg, 4))
             seg[:, : walls.shape[1]] = walls
@@ -124,9 +132,13 @@ class Lidar:
 
     def _cast(self, poses: FloatArray, seg: FloatArray, layout: _Layout) -> FloatArray:
         """Nearest hit per ray; ``seg`` (n, S, 4) m = start x, start y, end x, end y."""
-        n = len(poses)
-        x, y = poses[:, 0:1], poses[:, 1:2]
-        cos, sin = np.cos(poses[:, 2:3]), np.sin(poses[:, 2:3])
+        n, m = seg.shape[:2]
+        # Each car's x, y and heading's cos and sin repeated over its m segments: numpy
+        # buffers a broadcast operand, which costs more than this one repeat on these sizes.
+        frame = np.concatenate(
+            [poses[:, :2].T, np.cos(poses[None, :, 2]), np.sin(poses[None, :, 2])]
+        )
+        x, y, cos, sin = frame.repeat(m, axis=1).reshape(4, n, m)
         # Segment ends in each car's frame.
         dx, dy = seg[..., 0] - x, seg[..., 1] - y
         ax, ay = cos * dx + sin * dy, cos * dy - sin * dx
@@ -147,14 +159,14 @@ class Lidar:
         lo = np.arctan2(ay, ax) + np.minimum(span, 0.0)
         lo = self.first + np.mod(lo - self.first, 2 * math.pi)
         hi = lo + np.abs(span)
-        k_lo = np.ceil((lo[:, None] + self._shifts) / self.step - 1e-9)
-        k_hi = np.minimum(
-            np.floor((hi[:, None] + self._shifts) / self.step + 1e-9), self.n_rays - 1
-        )
-        k_lo = np.maximum(k_lo, 0).astype(np.int64).ravel()
+        # Both shifts of each interval, flat (2K,): [shift 0, shift 1] per segment.
+        shifts = self._shift_pairs(len(lo))
+        k_lo = np.ceil((lo.repeat(2) + shifts) / self.step - 1e-9)
+        k_hi = np.minimum(np.floor((hi.repeat(2) + shifts) / self.step + 1e-9), self.n_rays - 1)
+        k_lo = np.maximum(k_lo, 0).astype(np.int64)
         # Array methods, not numpy's functions: the same results without the dispatch cost,
         # which dominates on arrays this small.
-        counts = np.maximum(k_hi.astype(np.int64).ravel() - k_lo + 1, 0)
+        counts = np.maximum(k_hi.astype(np.int64) - k_lo + 1, 0)
         out = np.empty(n * self.n_rays)
         out.fill(self.max_range)
         ends = counts.cumsum()
@@ -186,7 +198,7 @@ class _Layout:
     Attributes:
         n_seg: segments per scanner (windowed walls, then every car's edges).
         usable: (n, n_seg) False for a scanner's own edges.
-        reach: (n_seg,) m², squared distance from a scanner beyond which both ends of a
+        reach: (n, n_seg) m², squared distance from a scanner beyond which both ends of a
             segment put all of it out of range.
     """
 

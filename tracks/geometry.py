@@ -41,6 +41,28 @@ _PROJECT_BLOCK = 16384  # points per projection block: keeps the (M, 4) temporar
 # the env's cars, every step. Each numpy call costs about a microsecond whatever its size,
 # so on a few points the scalar loop is cheaper than the ~40 calls of a block.
 _PROJECT_FEW = 16
+# Few-point projections find the two nearest centre-line vertices in a grid of candidates
+# (Track._near_grid) instead of the k-d tree, whose per-call overhead dominates for a few
+# points: cells of this size, m, and only where every candidate lies within this reach, m.
+_NEAR_CELL = 0.5
+_NEAR_REACH = 3.0
+_NEAR_MARGIN = 1e-6  # m added to each cell's candidate radius: beyond any rounding
+
+
+@dataclass(frozen=True)
+class _NearGrid:
+    """Candidates of :meth:`Track._nearest_two`: cell ``(i, j)`` (``i * ny + j``) covers
+    ``[x0 + i h, x0 + (i+1) h) × [y0 + j h, …)`` and lists ``flat[a:b]`` for its span
+    ``(a, b)`` (None: no candidates kept); ``xs``, ``ys``: the vertices, m."""
+
+    x0: float
+    y0: float
+    nx: int
+    ny: int
+    cells: list[tuple[int, int] | None]
+    flat: list[int]
+    xs: list[float]
+    ys: list[float]
 
 
 @dataclass(frozen=True)
@@ -538,6 +560,85 @@ class Track:
         return np.roll(self.tangents, -1, axis=0) - self.tangents
 
     @cached_property
+    def _near_grid(self) -> _NearGrid:
+        """Candidate nearest vertices per cell of a square grid around the centre line.
+
+        For a cell with centre q and half-diagonal r, any point p in it has its second
+        nearest vertex within ``D2(q) + r`` (``D2``: the second-nearest distance), so both
+        of its nearest vertices lie within ``D2(q) + 2r`` of q: those are the cell's
+        candidates (plus a margin). Cells whose candidates reach beyond ``_NEAR_REACH`` are
+        left out (None: the k-d tree answers there).
+        """
+        h = _NEAR_CELL
+        x0, y0 = self.centre.min(axis=0) - _NEAR_REACH
+        x1, y1 = self.centre.max(axis=0) + _NEAR_REACH
+        nx, ny = math.ceil((x1 - x0) / h), math.ceil((y1 - y0) / h)
+        ix, iy = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")
+        centres = np.column_stack([x0 + h * (ix.ravel() + 0.5), y0 + h * (iy.ravel() + 0.5)])
+        second = self._tree.query(centres, k=2)[0][:, 1]
+        radius = second + h * math.sqrt(2.0) + _NEAR_MARGIN
+        used = np.flatnonzero(radius <= _NEAR_REACH)
+        cells: list[tuple[int, int] | None] = [None] * (nx * ny)
+        flat: list[int] = []
+        ids = list(range(self.n_points))  # one int object per vertex, shared by the cells
+        near = self._tree.query_ball_point(centres[used], radius[used])
+        for cell, members in zip(used.tolist(), near, strict=True):
+            cells[cell] = (len(flat), len(flat) + len(members))
+            flat.extend(ids[v] for v in members)
+        return _NearGrid(
+            x0=float(x0),
+            y0=float(y0),
+            nx=nx,
+            ny=ny,
+            cells=cells,
+            flat=flat,
+            xs=self.centre[:, 0].tolist(),
+            ys=self.centre[:, 1].tolist(),
+        )
+
+    def _nearest_two(self, p: FloatArray) -> list[list[int]]:
+        """The k-d tree's ``query(p, k=2)`` indices (M, 2) for a few points, nearest first.
+
+        From :attr:`_near_grid` where its answer is certain (distinct distances, every
+        candidate's squared distance apart by far more than rounding), else from the tree.
+        """
+        grid = self._near_grid
+        x0, y0, nx, ny, cells, flat = grid.x0, grid.y0, grid.nx, grid.ny, grid.cells, grid.flat
+        xs, ys, inv, inf = grid.xs, grid.ys, 1.0 / _NEAR_CELL, math.inf
+        out: list[list[int]] = []
+        missing: list[int] = []
+        for k, (px, py) in enumerate(p.tolist()):
+            fx, fy = (px - x0) * inv, (py - y0) * inv
+            span = None
+            if 0.0 <= fx < nx and 0.0 <= fy < ny:  # False for NaN too
+                span = cells[int(fx) * ny + int(fy)]
+            if span is None:
+                missing.append(k)
+                out.append([])
+                continue
+            d1 = d2 = d3 = inf
+            i1 = i2 = -1
+            for v in flat[span[0] : span[1]]:
+                dx, dy = px - xs[v], py - ys[v]
+                d = dx * dx + dy * dy
+                if d < d2:
+                    if d < d1:
+                        d1, d2, d3, i1, i2 = d, d1, d2, v, i1
+                    else:
+                        d2, d3, i2 = d, d2, v
+                elif d < d3:
+                    d3 = d
+            gap = 1e-9 * d3 + 1e-300
+            if i2 < 0 or not (d2 - d1 > gap and d3 - d2 > gap):  # a (near) tie: the tree
+                missing.append(k)
+            out.append([i1, i2])
+        if missing:
+            _, nearest = self._tree.query(p[missing], k=2)
+            for k, pair in zip(missing, np.reshape(nearest, (-1, 2)).tolist(), strict=True):
+                out[k] = pair
+        return out
+
+    @cached_property
     def _frame_rows(self) -> list[tuple[float, ...]]:
         """:attr:`_frame_table` as one tuple of 10 Python floats per segment (N,)."""
         return [tuple(row) for row in self._frame_table.T.tolist()]
@@ -634,13 +735,13 @@ class Track:
         the block.
         """
         n = self.n_points
-        k = min(2, n)
-        _, nearest = self._tree.query(p, k=k)
+        if n < 3:
+            return self._project_block(p)
         rows, sqrt, inf = self._frame_rows, math.sqrt, math.inf
         seg: list[int] = []
         tb: list[float] = []
         db: list[float] = []
-        points = zip(p.tolist(), np.reshape(nearest, (len(p), k)).tolist(), strict=True)
+        points = zip(p.tolist(), self._nearest_two(p), strict=True)
         for (px, py), near in points:
             best, best_cost, best_t, best_d = -1, inf, 0.0, 0.0
             # The block's candidates in its order; one of the nearest vertices' segments is

@@ -154,6 +154,25 @@ def test_projection_of_a_few_points_is_the_block_projection_bit_for_bit(name: st
         assert proj.s.shape == proj.d.shape == proj.heading.shape == proj.segment.shape == (m,)
 
 
+@pytest.mark.parametrize("name", ["oval", "monza", "hairpins", "bean"])
+def test_nearest_two_vertices_are_the_kd_trees(name: str) -> None:
+    # The few-point projection looks its candidate segments up in a grid instead of the k-d
+    # tree: the same two vertices, nearest first, on the road, off it and beyond the grid.
+    track = load_track(name)
+    rng = np.random.default_rng(11)
+    xmin, ymin, xmax, ymax = track.bounds
+    pts = np.vstack(
+        [
+            rng.uniform([xmin - 6, ymin - 6], [xmax + 6, ymax + 6], (3000, 2)),
+            track.centre[rng.integers(0, track.n_points, 3000)] + rng.normal(0, 0.8, (3000, 2)),
+            # Exactly between two vertices: a tie the grid must leave to the tree.
+            0.5 * (track.centre[:50] + track.centre[1:51]),
+        ]
+    )
+    _, expected = track._tree.query(pts, k=2)
+    np.testing.assert_array_equal(np.array(track._nearest_two(pts)), expected)
+
+
 def test_projection_of_a_few_points_without_a_frame_solution_uses_the_vertex() -> None:
     # A concave notch (5 corners, no smoothing): inside it some points have no solution on
     # the candidate segments' frames, and the nearest vertex is used, as for many points.
