@@ -644,8 +644,9 @@ class Simulator:
             f_drive = 0.25 * drive_force(throttle, vx, p, motor, mass)
             # Front wheels (steered), then rear wheels: ux = vx − r·wy, uy = vy + r·wx.
             fx_b = fy_b = torque = 0.0
+            uy = vy + r * lf  # both front wheels
             for wy, cd, sd in ((half, cd_left, sd_left), (-half, cd_right, sd_right)):
-                ux, uy = vx - r * wy, vy + r * lf
+                ux = vx - r * wy
                 f_lat = k_lat * (-sd * ux + cd * uy)
                 f_long = f_drive
                 norm = hypot(f_long, f_lat)
@@ -657,16 +658,19 @@ class Simulator:
                 fx_b += fx
                 fy_b += fy
                 torque += lf * fy - wy * fx
+            # The rear wheels do not steer: both have the same slip, so the same forces
+            # (computed once, still added wheel by wheel in the same order).
+            f_lat = k_lat * (vy + r * -lr)
+            f_long = f_drive
+            norm = hypot(f_long, f_lat)
+            if norm > limit:
+                f_long *= limit / norm
+                f_lat *= limit / norm
+            yaw_lat = -lr * f_lat
             for wy in (half, -half):
-                f_lat = k_lat * (vy + r * -lr)
-                f_long = f_drive
-                norm = hypot(f_long, f_lat)
-                if norm > limit:
-                    f_long *= limit / norm
-                    f_lat *= limit / norm
                 fx_b += f_long
                 fy_b += f_lat
-                torque += -lr * f_lat - wy * f_long
+                torque += yaw_lat - wy * f_long
             force(body, -1, (cy * fx_b - sy * fy_b, sy * fx_b + cy * fy_b, 0.0), pos, frame, c)
             torque_of(body, -1, (0.0, 0.0, torque), frame, c)
 
