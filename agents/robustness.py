@@ -624,28 +624,22 @@ def training_uncertainty(name: str) -> Any:
 
 def wide_dynamics(factor: float = WIDE_FACTOR) -> Any:
     """:data:`arena.uncertainty.DEFAULT_DYNAMICS` with every interval ``factor`` times as wide
-    about its nominal value (friction 0.6–1.2 → 0.4–1.3 at 1.5; latency stays whole
-    steps, rounded up; the lower multipliers stay above 0.3, noise above 0), an
-    :class:`arena.uncertainty.DynamicsBounds`."""
+    about its nominal value (:meth:`arena.uncertainty.UncertaintyConfig.scaled`; friction
+    0.6–1.2 → 0.4–1.3 at 1.5, latency 0–2 → 0–3 whole steps) in plain floats rounded to 6
+    decimals, an :class:`arena.uncertainty.DynamicsBounds`."""
     import dataclasses  # noqa: PLC0415 - only here
 
-    from arena.uncertainty import DEFAULT_DYNAMICS  # noqa: PLC0415 - heavy, imported on use
+    from arena.uncertainty import default_config  # noqa: PLC0415 - heavy, imported on use
 
-    def widen(name: str, interval: tuple[float, float]) -> tuple[float, float]:
-        centre = {"steer_offset": 0.0, "latency": 0.0, "action_noise": 0.0}.get(name, 1.0)
-        lo, hi = (centre + factor * (v - centre) for v in interval)
-        if name == "latency":
-            return (0, math.ceil(hi))
-        floor = 0.0 if name in ("steer_offset", "action_noise") else 0.3
-        return (round(max(lo, floor) if name != "steer_offset" else lo, 6), round(hi, 6))
+    def plain(v: float) -> float:  # whole latency steps stay ints
+        return v if isinstance(v, int) else round(float(v), 6)
 
-    return dataclasses.replace(
-        DEFAULT_DYNAMICS,
-        **{
-            f.name: widen(f.name, getattr(DEFAULT_DYNAMICS, f.name))
-            for f in dataclasses.fields(DEFAULT_DYNAMICS)
-        },
-    )
+    grown = default_config("sample").scaled(factor).dynamics
+    changes: dict[str, tuple[float, float]] = {}
+    for f in dataclasses.fields(grown):
+        lo, hi = getattr(grown, f.name)
+        changes[f.name] = (plain(lo), plain(hi))
+    return dataclasses.replace(grown, **changes)
 
 
 def zhang_reward() -> Any:

@@ -466,6 +466,12 @@ def test_make_env_spec_matches_a_real_env() -> None:
             env.close()
 
 
+def printed_by_a_fresh_interpreter(code: str) -> list[str]:
+    """The lines ``code`` prints when run by a new Python (nothing imported yet)."""
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    return run.stdout.splitlines()
+
+
 def test_the_sandboxed_worker_starts_without_scipy_or_the_simulator() -> None:
     # Every sandbox start imports submissions.worker; through submissions.errors ->
     # tracks.errors, tracks/__init__ used to import scipy (about 1 s of CPU per sandbox).
@@ -478,8 +484,7 @@ def test_the_sandboxed_worker_starts_without_scipy_or_the_simulator() -> None:
         "import tracks.geometry\n"
         "print(Track is tracks.geometry.Track and load_track('oval').length > 30)\n"
     )
-    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert run.stdout.splitlines() == ["[]", "True"]
+    assert printed_by_a_fresh_interpreter(code) == ["[]", "True"]
 
 
 def test_a_bundle_built_on_the_baselines_starts_without_jsonschema_or_pil() -> None:
@@ -496,8 +501,7 @@ def test_a_bundle_built_on_the_baselines_starts_without_jsonschema_or_pil() -> N
         "except Exception as err:\n"
         "    print(type(err).__name__, 'invalid track JSON' in str(err))\n"
     )
-    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert run.stdout.splitlines() == ["[]", "TrackError True"]
+    assert printed_by_a_fresh_interpreter(code) == ["[]", "TrackError True"]
 
 
 def test_bundle_root_is_read_only_inside(make_python_bundle: MakeBundle) -> None:
