@@ -17,6 +17,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 from numpy.typing import NDArray
 
 from arena.walls import Walls
@@ -65,6 +66,12 @@ class Lidar:
         self._table: FloatArray = np.hstack(
             [left, np.roll(left, -1, axis=0), right, np.roll(right, -1, axis=0)]
         )  # (W, 8) m
+        # The same rows padded round the loop, so that the window of wall point k is rows
+        # k … k + 2·half_window, read through a sliding view: one gather per scan, and no
+        # index arithmetic (Walls.window's indices, without building them).
+        w, hw = len(left), self.half_window
+        padded = self._table.take((np.arange(w + 2 * hw) - hw) % w, axis=0)
+        self._windows: FloatArray = sliding_window_view(padded, (2 * hw + 1, 8))[:, 0]
         # A segment whose ends both lie farther than this from a car is beyond the range
         # all along (each of its points is within half its length of an end): m², walls.
         ends = self._table.reshape(-1, 2, 2, 2)  # (W, wall, [start, end], xy)
@@ -116,18 +123,20 @@ class Lidar:
                 car's own rectangle is skipped. None: walls only.
         """
         n = len(poses)
-        idx = self.walls.window(segment, self.half_window)  # (n, S)
-        walls = self._table[idx].reshape(n, -1, 4)  # (n, 2S, 4): [x0, y0, x1, y1]
-        if car_corners is not None and len(car_corners) > 1:
-            # Every car's 4 edges, shared by all scanners (the order of the segments does not
-            # matter: each ray keeps its nearest hit).
-            edges = np.concatenate([car_corners, car_corners[:, _NEXT_CORNER]], axis=-1)
-            layout = self._layout(n, 4 * len(car_corners))
-            seg = np.empty((n, layout.n_seg, 4))
-            seg[:, : walls.shape[1]] = walls
-            seg[:, walls.shape[1] :] = edges.reshape(-1, 4)
-        else:
-            layout, seg = self._layout(n, 0), walls
+        # (n, S, 8) → (n, 2S, 4): [x0, y0, x1, y1] of the windowed wall segments.
+        windows = self._windows[self.walls.window_start(segment)]
+        if car_corners is None or len(car_corners) < 2:
+            return self._cast(poses, windows.reshape(n, -1, 4), self._layout(n, 0))
+        # Every car's 4 edges after the walls, shared by all scanners (the order of the
+        # segments does not matter: each ray keeps its nearest hit). Written in place.
+        m = len(car_corners)
+        layout = self._layout(n, 4 * m)
+        seg = np.empty((n, layout.n_seg, 4))
+        n_wall = 2 * windows.shape[1]
+        seg[:, :n_wall] = windows.reshape(n, n_wall, 4)
+        edges = seg[:, n_wall:].reshape(n, m, 4, 4)  # a view: [start xy, end xy] per edge
+        edges[..., :2] = car_corners
+        edges[..., 2:] = car_corners.take(_NEXT_CORNER, axis=1)
         return self._cast(poses, seg, layout)
 
     def _cast(self, poses: FloatArray, seg: FloatArray, layout: _Layout) -> FloatArray:

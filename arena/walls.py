@@ -85,9 +85,14 @@ class Walls:
         """Points W per wall polyline."""
         return len(self.left)
 
+    def window_start(self, segment: IntArray) -> IntArray:
+        """The wall point (n,) at the middle of each window: the one at the start of the
+        stride that holds each centre-line segment index (n,)."""
+        return np.asarray(segment, dtype=np.int64) // self.stride
+
     def window(self, segment: IntArray, half_width: int) -> IntArray:
         """Wall-point indices (n, 2*half_width+1) around centre-line segment indices (n,)."""
-        base = np.asarray(segment, dtype=np.int64) // self.stride
+        base = self.window_start(segment)
         return (base[:, None] + np.arange(-half_width, half_width + 1)) % self.n_points
 
     def segments(self) -> tuple[FloatArray, FloatArray]:

@@ -526,8 +526,9 @@ class Track:
         f = _as_points(frenet, "frenet coordinates")
         i, t = self._locate(f[:, 0])
         tt = t[:, None]
-        base = self.centre[i] + tt * self._centre_steps[i]
-        normal = self.normals[i] + tt * self._normal_steps[i]
+        # take(axis=0): fancy indexing's rows, at a fraction of its cost on a few points.
+        base = self.centre.take(i, axis=0) + tt * self._centre_steps.take(i, axis=0)
+        normal = self.normals.take(i, axis=0) + tt * self._normal_steps.take(i, axis=0)
         return base + f[:, 1:2] * normal
 
     @cached_property
@@ -665,7 +666,7 @@ class Track:
                 hi = min(lo + _PROJECT_BLOCK, m)
                 seg[lo:hi], tb[lo:hi], db[lo:hi] = self._project_block(p[lo:hi])
         s = self.wrap_s(self.s[seg] + tb * self.segment_lengths[seg])
-        tan = self.tangents[seg] + tb[:, None] * self._tangent_steps[seg]
+        tan = self.tangents.take(seg, axis=0) + tb[:, None] * self._tangent_steps.take(seg, axis=0)
         heading = np.arctan2(tan[:, 1], tan[:, 0])
         return Projection(s=s, d=db, heading=heading, segment=seg)
 
