@@ -55,6 +55,9 @@ EGO_LOW = np.array([-1.0, -2.0, -1.0, -2.0, -1.0, -3.0, -2.0])
 EGO_HIGH = np.array([2.0, 2.0, 1.0, 2.0, 1.0, 3.0, 2.0])
 OPP_LOW = np.array([0.0, -1.0, -1.0, -2.0, -2.0])
 OPP_HIGH = np.array([1.0, 1.0, 1.0, 2.0, 2.0])
+# The ego feature scaled by the road's half-width rather than by a constant.
+_IS_OFFSET = np.array([name == "lateral_offset" for name in EGO_FEATURES])
+_IS_OFFSET.flags.writeable = False
 
 
 @dataclass(frozen=True)
@@ -131,18 +134,11 @@ def ego_features(
 ) -> FloatArray:
     """Ego block (..., n, 7), unclipped; inputs are (..., n) in m, m/s, rad, rad/s."""
     half = ops.where(d >= 0, width_left, width_right)
-    return ops.stack(
-        [
-            v_long / v_max,
-            v_lat / v_max,
-            steering / max_steer,
-            yaw_rate / YAW_RATE_SCALE,
-            heading_error / np.pi,
-            d / half,
-            progress_rate / v_max,
-        ],
-        axis=-1,
-    )
+    raw = ops.stack([v_long, v_lat, steering, yaw_rate, heading_error, d, progress_rate], axis=-1)
+    # One division by each feature's scale (the road half-width on the car's side for the
+    # offset): the same quotients as one division per feature, in fewer array operations.
+    scales = ops.floats((v_max, v_max, max_steer, YAW_RATE_SCALE, np.pi, 1.0, v_max))
+    return raw / ops.where(ops.const(_IS_OFFSET), half[..., None], scales)
 
 
 def track_ahead_features(
@@ -150,10 +146,21 @@ def track_ahead_features(
 ) -> FloatArray:
     """Track-ahead block (..., n, L, 2): centre-line points (..., n, L, 2) m in each car's
     frame / range."""
-    dx = points_ahead[..., 0] - poses[..., 0:1]
-    dy = points_ahead[..., 1] - poses[..., 1:2]
-    cos, sin = ops.cos(poses[..., 2:3]), ops.sin(poses[..., 2:3])
-    return ops.stack([cos * dx + sin * dy, cos * dy - sin * dx], axis=-1) / max_range
+    rel = points_ahead - poses[..., None, :2]  # [dx, dy]
+    return _to_car_frame(rel, poses[..., 2], ops) / max_range
+
+
+def _to_car_frame(rel: FloatArray, yaw: FloatArray, ops: NumpyOps) -> FloatArray:
+    """World vectors (..., n, M, 2K) as K pairs [x, y] → [cos·x + sin·y, cos·y − sin·x] in
+    the frames of cars heading ``yaw`` (..., n) rad.
+
+    Both components at once: ``rel · cos`` plus the swapped pairs times ``[sin, −sin]`` (a
+    sign flip is exact, and ``a + (−b)`` is ``a − b``), so the same bits as the two formulas.
+    """
+    cos = ops.cos(yaw)[..., None, None]
+    sin = ops.sin(yaw)[..., None, None]
+    signs = ops.floats((1.0, -1.0) * (rel.shape[-1] // 2))
+    return rel * cos + ops.swap_pairs(rel) * (sin * signs)
 
 
 def opponent_features(
@@ -187,23 +194,23 @@ def opponent_features(
     dist = ops.where(valid, dist, np.inf)
     order = ops.argsort(dist, axis=-1)[..., :k]  # (..., n, min(k, n))
     m = order.shape[-1]
-    picked = ops.gather_rows(rel, order)  # (..., n, m, 4)
-    # x and y of the relative position and velocity side by side, (..., n, m, 2) each:
-    # both are turned into the car's frame at once.
-    x, y = picked[..., 0::2], picked[..., 1::2]
-    cos, sin = ops.cos(poses[..., 2])[..., None, None], ops.sin(poses[..., 2])[..., None, None]
+    picked = ops.gather_rows(rel, order)  # (..., n, m, 4) [dx, dy, dvx, dvy]
+    # Position and velocity turned into the car's frame at once: [dx, dy, dvx, dvy] forward
+    # and to the left, the order of the block's last four features.
+    turned = _to_car_frame(picked, poses[..., 2], ops)
     # The visible cars sort first: slot q is filled when more than q of them exist. Absent
     # slots are zeroed by the same factor that scales the present ones.
     others = ops.sum(valid, axis=-1)  # (..., n) visible other cars
-    flag = ops.cast(ops.arange(m) < others[..., None], dist.dtype)  # (..., n, m)
-    scale = ops.stack([flag * (1.0 / max_range), flag * (1.0 / v_max)], axis=-1)
-    # Filled in place: [present, dx, dy, dvx, dvy] interleaves the two blocks below, and
-    # slots beyond m (fewer cars than k) stay zero.
-    block = ops.zeros((*lead, n, k, len(OPPONENT_FEATURES)), dtype=dist.dtype)
-    block[..., :m, 0] = flag
-    block[..., :m, 1::2] = (cos * x + sin * y) * scale  # [dx, dvx] forward
-    block[..., :m, 2::2] = (cos * y - sin * x) * scale  # [dy, dvy] to the left
-    return block
+    flag = ops.cast(ops.arange(m) < others[..., None], dist.dtype)[..., None]  # (..., n, m, 1)
+    inv_range, inv_speed = 1.0 / max_range, 1.0 / v_max
+    scale = flag * ops.floats((inv_range, inv_range, inv_speed, inv_speed))
+    block = ops.concat([flag, turned * scale], axis=-1)  # [present, dx, dy, dvx, dvy]
+    if m == k:
+        return block
+    # Fewer other cars than slots: the slots beyond m stay zero.
+    out = ops.zeros((*lead, n, k, len(OPPONENT_FEATURES)), dtype=dist.dtype)
+    out[..., :m, :] = block
+    return out
 
 
 def vector_observation(

@@ -194,20 +194,23 @@ def car_corners(poses: FloatArray, length: float, width: float) -> FloatArray:
     Order: front-left, rear-left, rear-right, front-right (counter-clockwise).
     """
     lx, ly = _corner_offsets(length, width)
-    cos, sin = np.cos(poses[:, 2])[:, None], np.sin(poses[:, 2])[:, None]
-    out = np.empty((len(poses), 4, 2))
-    out[..., 0] = poses[:, 0:1] + cos * lx - sin * ly
-    out[..., 1] = poses[:, 1:2] + sin * lx + cos * ly
-    return out
+    trig = np.empty((len(poses), 1, 2))  # [cos, sin] of each yaw
+    np.cos(poses[:, 2], out=trig[:, 0, 0])
+    np.sin(poses[:, 2], out=trig[:, 0, 1])
+    # x + cos·lx − sin·ly and y + sin·lx + cos·ly for both coordinates at once: the second
+    # products are [sin, cos] times [−ly, ly] (a sign flip is exact; a + (−b) is a − b).
+    return (poses[:, None, :2] + trig * lx) + trig[..., ::-1] * ly
 
 
 @functools.lru_cache(maxsize=16)
 def _corner_offsets(length: float, width: float) -> tuple[FloatArray, FloatArray]:
-    """x and y (4,) m of the corners in the car frame, in :func:`car_corners`' order."""
+    """(4, 1) and (4, 2) m: the corners' x in the car frame, and their y as [−y, y], in
+    :func:`car_corners`' order."""
     hl, hw = 0.5 * length, 0.5 * width
-    lx, ly = np.array([hl, -hl, -hl, hl]), np.array([hw, hw, -hw, -hw])
-    lx.flags.writeable = ly.flags.writeable = False
-    return lx, ly
+    lx, ly = np.array([[hl], [-hl], [-hl], [hl]]), np.array([hw, hw, -hw, -hw])
+    ly_pair = np.stack([-ly, ly], axis=1)
+    lx.flags.writeable = ly_pair.flags.writeable = False
+    return lx, ly_pair
 
 
 def drive_force(throttle: float, v_long: float, p: CarParams, motor: float, mass: float) -> float:

@@ -96,6 +96,10 @@ class NumpyOps:
         """A long-lived read-only numpy constant as an array of this library (cached)."""
         return x
 
+    def floats(self, values: tuple[float, ...]) -> Array:
+        """``values`` (K,) as a read-only array of the state's float type (cached)."""
+        return _floats(values, self.float)
+
     # ---- maths and reductions ------------------------------------------------------------------
     def atan2(self, y: Array, x: Array) -> Array:
         """Elementwise ``atan2(y, x)``, rad."""
@@ -197,6 +201,10 @@ class NumpyOps:
             inv[_arange(order.shape[0])[:, None], order] = _arange(order.shape[1])
             return inv
         return self.argsort(order, axis=-1)
+
+    def swap_pairs(self, x: Array) -> Array:
+        """``x`` with each pair along the last axis swapped: [a, b, c, d] → [b, a, d, c]."""
+        return x.take(_pair_swap(x.shape[-1]), axis=-1)
 
     def gather_rows(self, x: Array, idx: Array) -> Array:
         """Rows ``x[..., i, idx[..., i, q], :]``: (..., n, n, F) by (..., n, m) → (..., n, m, F)."""
@@ -320,6 +328,14 @@ class TorchOps(NumpyOps):
             self._consts[id(x)] = hit
         return hit[1]
 
+    def floats(self, values: tuple[float, ...]) -> Array:
+        """``values`` (K,) as a tensor of the state's float type on the device (cached)."""
+        return self.const(_floats(values, np.dtype(np.float64)))
+
+    def swap_pairs(self, x: Array) -> Array:
+        """``x`` with each pair along the last axis swapped: [a, b, c, d] → [b, a, d, c]."""
+        return x.index_select(-1, self.const(_pair_swap(x.shape[-1])))
+
     def atan2(self, y: Array, x: Array) -> Array:
         """Elementwise ``atan2(y, x)``, rad."""
         return self.torch.atan2(y, x)
@@ -431,6 +447,22 @@ def _eye(n: int) -> np.ndarray:
     eye = np.eye(n, dtype=bool)
     eye.flags.writeable = False
     return eye
+
+
+@functools.lru_cache(maxsize=64)
+def _floats(values: tuple[float, ...], dtype: np.dtype[Any]) -> np.ndarray:
+    out = np.array(values, dtype=dtype)
+    out.flags.writeable = False
+    return out
+
+
+@functools.lru_cache(maxsize=8)
+def _pair_swap(n: int) -> np.ndarray:
+    if n % 2:
+        raise ValueError(f"swap_pairs needs an even last axis, got {n}")
+    out = np.arange(n, dtype=np.int64) ^ 1  # 1, 0, 3, 2, …
+    out.flags.writeable = False
+    return out
 
 
 def _shape(shape: Sequence[int] | int) -> tuple[int, ...]:
