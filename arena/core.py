@@ -229,7 +229,7 @@ class Outcome:
 
 
 def _plain_numpy(ops: NumpyOps) -> bool:
-    return ops.name == "numpy" and ops.float == np.dtype(np.float64)
+    return ops is NUMPY or (ops.name == "numpy" and ops.float == np.dtype(np.float64))
 
 
 def episode_start(
@@ -295,13 +295,15 @@ def episode_step(
     # Ordered gates, exactly tracks.LapCounter (only racing cars count).
     gate = rules.gate_s[st.next_gate]
     before = rules.delta_s(ops, gate, st.s)
-    crossed = (ds > 0) & (ds <= rules.max_jump) & (before > 0) & (before <= ds) & active
-    if isinstance(crossed, np.ndarray) and not np.count_nonzero(crossed):
-        # The common case on one race (a car passes a gate every second or so): the same
-        # values as below, without the work.
-        lap_done, lap_time = crossed, ops.zeros(crossed.shape)
+    reached = (before > 0) & (before <= ds)  # the next gate lies within this step's move
+    if isinstance(reached, np.ndarray) and not np.count_nonzero(reached):
+        # The common case on one race (a car passes a gate every second or so): nothing
+        # crossed, the same values as below without the work.
+        lap_done = reached
+        lap_time = ops.zeros(reached.shape)
         laps, next_gate, line_time, last_lap = st.laps, st.next_gate, st.line_time, st.last_lap
     else:
+        crossed = (ds > 0) & (ds <= rules.max_jump) & reached & active
         finish_line = crossed & (st.next_gate == 0)
         started = st.laps >= 0  # laps is -1 until the first crossing of the line, then counts
         lap_done = finish_line & started

@@ -743,11 +743,17 @@ class Track:
         tb: list[float] = []
         db: list[float] = []
         points = zip(p.tolist(), self._nearest_two(p), strict=True)
-        for (px, py), near in points:
+        for (px, py), (near1, near2) in points:
             best, best_cost, best_t, best_d = -1, inf, 0.0, 0.0
-            # The block's candidates in its order; one of the nearest vertices' segments is
-            # usually listed twice, and a repeat can never be a strictly smaller minimum.
-            for j in dict.fromkeys([v % n for v in near] + [(v - 1) % n for v in near]):
+            # The block's candidates in its order (segments v1, v2, v1 - 1, v2 - 1) without
+            # repeats: one is usually listed twice, and a repeat can never be a strictly
+            # smaller minimum.
+            v1, v2 = near1 % n, near2 % n
+            cands: tuple[int, ...] = (v1, v2) if v1 != v2 else (v1,)
+            for v in ((v1 - 1) % n, (v2 - 1) % n):
+                if v not in cands:
+                    cands += (v,)
+            for j in cands:
                 cx, cy, nx, ny, ex, ey, dnx, dny, qa, en = rows[j]
                 qx = px - cx
                 qy = py - cy
