@@ -280,8 +280,11 @@ class Simulator:
         self.substeps_done = 0
         # The cars' state as last read (see _read), while no body has moved since.
         self._last_read: list[tuple[float, ...]] | None = None
-        # Per car: (steering rad, cos and sin of the left and right front-wheel angles).
-        self._wheel_angles: list[tuple[float, ...]] = [(0.0, 1.0, 0.0, 1.0, 0.0)] * n_cars
+        # Per car: (steering rad, its front wheels' (y offset m, cos, sin of the wheel angle),
+        # left then right), recomputed when the steering changes.
+        half = 0.5 * self.params.track_width
+        straight = (0.0, ((half, 1.0, 0.0), (-half, 1.0, 0.0)))
+        self._wheel_angles: list[tuple[Any, ...]] = [straight] * n_cars
         self._build_world()
 
     # ---- world construction ---------------------------------------------------------------
@@ -505,29 +508,31 @@ class Simulator:
         # Arithmetic per car in Python floats (the values numpy gives, without its per-call
         # overhead on a few cars); the angle functions stay numpy's, on arrays.
         rows = self._read()
-        yaw_y, yaw_x, upright = [], [], []
+        yaw_y, yaw_x = [], []
         for row in rows:
             qx, qy, qz, qw = row[3:7]
             yaw_y.append(2.0 * (qw * qz + qx * qy))
             yaw_x.append(1.0 - 2.0 * (qy * qy + qz * qz))
-            upright.append(1.0 - 2.0 * (qx * qx + qy * qy))
-        yaw = np.arctan2(np.array(yaw_y), np.array(yaw_x))  # as _yaw
-        poses, velocity, v_long, v_lat = [], [], [], []
+        parts = np.array([yaw_y, yaw_x])
+        yaw = np.arctan2(parts[0], parts[1])  # as _yaw
+        # One array (n, 9) holds every per-car field: the state's arrays are views into it
+        # (one conversion from Python floats instead of one per field).
+        cols = []
         for row, a, cos, sin in zip(
             rows, yaw.tolist(), np.cos(yaw).tolist(), np.sin(yaw).tolist(), strict=True
         ):
-            vx, vy = row[7], row[8]
-            poses.append((row[0], row[1], a))
-            velocity.append((vx, vy, row[12]))
-            v_long.append(cos * vx + sin * vy)
-            v_lat.append(-sin * vx + cos * vy)
+            qx, qy, vx, vy = row[3], row[4], row[7], row[8]
+            v_long, v_lat = cos * vx + sin * vy, -sin * vx + cos * vy
+            upright = 1.0 - 2.0 * (qx * qx + qy * qy)
+            cols.append((row[0], row[1], a, vx, vy, row[12], v_long, v_lat, upright))
+        table = np.array(cols)
         return SimState(
-            poses=np.array(poses),
-            velocity=np.array(velocity),
-            v_long=np.array(v_long),
-            v_lat=np.array(v_lat),
+            poses=table[:, 0:3],
+            velocity=table[:, 3:6],
+            v_long=table[:, 6],
+            v_lat=table[:, 7],
             steering=self.steering.copy(),
-            upright=np.array(upright),
+            upright=table[:, 8],
             wall_contact=wall,
             car_contact=cars,
             time=self.time,
@@ -622,8 +627,9 @@ class Simulator:
         lf = lr = 0.5 * wheelbase
         get_pose, get_vel = pb.getBasePositionAndOrientation, pb.getBaseVelocity
         force, torque_of, frame = pb.applyExternalForce, pb.applyExternalTorque, pb.WORLD_FRAME
-        cos, sin, hypot, atan2 = math.cos, math.sin, math.hypot, math.atan2
+        cos, sin, hypot, atan2, copysign = math.cos, math.sin, math.hypot, math.atan2, math.copysign
         wheels = self._wheel_angles
+        rear = (half, -half)
         for i, (body, throttle, motor, mass, k_lat, limit) in enumerate(tyres):
             if rows is None:
                 pos, (qx, qy, qz, qw) = get_pose(body, c)
@@ -639,16 +645,18 @@ class Simulator:
             cached = wheels[i]
             # The servo holds its angle once there: the same angle gives the same wheels
             # (compared bit for bit, so -0.0 and 0.0 are not mixed up).
-            if cached[0] != steer or math.copysign(1.0, cached[0]) != math.copysign(1.0, steer):
+            if cached[0] != steer or (
+                steer == 0.0 and copysign(1.0, cached[0]) != copysign(1.0, steer)
+            ):
                 d_left, d_right = ackermann_angles(steer, wheelbase, p.track_width)
-                cached = (steer, cos(d_left), sin(d_left), cos(d_right), sin(d_right))
+                front = ((half, cos(d_left), sin(d_left)), (-half, cos(d_right), sin(d_right)))
+                cached = (steer, front)
                 wheels[i] = cached
-            _, cd_left, sd_left, cd_right, sd_right = cached
             f_drive = 0.25 * drive_force(throttle, vx, p, motor, mass)
             # Front wheels (steered), then rear wheels: ux = vx − r·wy, uy = vy + r·wx.
             fx_b = fy_b = torque = 0.0
             uy = vy + r * lf  # both front wheels
-            for wy, cd, sd in ((half, cd_left, sd_left), (-half, cd_right, sd_right)):
+            for wy, cd, sd in cached[1]:  # (wy m, cos, sin of the wheel angle) left, right
                 ux = vx - r * wy
                 f_lat = k_lat * (-sd * ux + cd * uy)
                 f_long = f_drive
@@ -670,7 +678,7 @@ class Simulator:
                 f_long *= limit / norm
                 f_lat *= limit / norm
             yaw_lat = -lr * f_lat
-            for wy in (half, -half):
+            for wy in rear:
                 fx_b += f_long
                 fy_b += f_lat
                 torque += yaw_lat - wy * f_long
