@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any, Generic, TypeVar
 
 from pydantic import BaseModel, ConfigDict, SerializerFunctionWrapHandler, field_serializer
-from sqlalchemy import ColumnElement, Select, case, func, select
+from sqlalchemy import ColumnElement, Select, bindparam, case, func, select
 from sqlalchemy.orm import Session, selectinload
 
 from leaderboard.cache import cache_for
@@ -416,8 +416,10 @@ def _leaderboard_page(
 
 
 def _summary(
-    sub: Submission, author: str, version: int | None, latest: int | None, car: str | None
+    sub: Any, author: str, version: int | None, latest: int | None, car: str | None
 ) -> dict[str, Any]:
+    """A :class:`SubmissionSummary`'s fields; ``sub``: a :class:`Submission` or a row with
+    its columns."""
     return {
         "id": sub.id,
         "name": sub.name,
@@ -506,6 +508,19 @@ def ladder_ranks(
     One ordered read of the ladder, cached like the leaderboard's pages (it changes when they
     do), so a submission page looks its rank up instead of counting the submissions above it
     (a scan of the table on every view, issue 13)."""
+    return _ladder_ranks(
+        session, car, provisional_races, max_age_s, _leaderboard_fingerprint(session)
+    )
+
+
+def _ladder_ranks(
+    session: Session,
+    car: str,
+    provisional_races: int,
+    max_age_s: float,
+    fingerprint: tuple[Any, ...],
+) -> dict[int, int]:
+    """:func:`ladder_ranks` under a :func:`_leaderboard_fingerprint` already read."""
 
     def compute() -> dict[int, int]:
         ids = session.scalars(
@@ -517,26 +532,63 @@ def ladder_ranks(
         return {sub_id: rank for rank, sub_id in enumerate(ids, start=1)}
 
     return cache_for(session).get(
-        ("ladder-ranks", car, provisional_races),
-        _leaderboard_fingerprint(session),
-        compute,
-        max_age_s,
+        ("ladder-ranks", car, provisional_races), fingerprint, compute, max_age_s
     )
 
 
-def _races_fingerprint(session: Session) -> tuple[Any, ...]:
-    """What changes whenever any race is queued, starts, finishes, fails or is handed back:
-    the newest race id, the latest finish, and how many races wait and run (index look-ups:
-    the pending ones are few)."""
-    newest = session.scalar(select(func.max(Race.id)))
-    finished = session.scalar(select(func.max(Race.finished_at)))
-    pending = session.execute(
-        select(Race.status, func.count(Race.id))
-        .where(Race.status.in_(("queued", "running")))
-        .group_by(Race.status)
-        .order_by(Race.status)
-    ).all()
-    return newest, finished, tuple(tuple(row) for row in pending)
+# ---- one submission: its page and /api/submissions/{id} ---------------------------------------
+# A first view of a submission ran ~25 statements, and building a statement costs SQLAlchemy
+# 0.1-0.3 ms (more than most of these take to run): so they are built once, here, with bound
+# parameters, over Core columns (plain tuples back, no ORM objects or result machinery), and
+# each section is one statement (issue 13).
+
+_SUB = Submission.__table__.c
+_VER = SubmissionVersion.__table__.c
+_RACE = Race.__table__.c
+_ENTRY = RaceEntry.__table__.c
+_USER = User.__table__.c
+_HIST = RatingHistory.__table__.c
+_REC = TrackRecord.__table__.c
+
+
+def _sid() -> Any:
+    """The ``:submission_id`` parameter of the statements below."""
+    return bindparam("submission_id")
+
+
+def _fingerprint_stmt() -> Select[Any]:
+    others = Submission.__table__.alias("others")  # every submission, not the one viewed
+    races = Race.__table__
+
+    def count_races(status: str) -> Any:
+        return select(func.count()).select_from(races).where(_RACE.status == status)
+
+    return select(
+        # Its row: every writer of its rating, versions, status or robustness score bumps
+        # updated_at; name and description are compared too, for edits by hand.
+        _SUB.updated_at,
+        _SUB.races,
+        _SUB.status,
+        _SUB.active_version_id,
+        _SUB.name,
+        _SUB.description,
+        # Its newest race (a race queued with it).
+        select(func.max(_ENTRY.race_id)).where(_ENTRY.submission_id == _SUB.id).scalar_subquery(),
+        # Every race's state: its races starting, finishing, failing or handed back.
+        select(func.max(_RACE.id)).scalar_subquery(),
+        select(func.max(_RACE.finished_at)).scalar_subquery(),
+        count_races("queued").scalar_subquery(),
+        count_races("running").scalar_subquery(),
+        # The ladder (its rank), as _leaderboard_fingerprint.
+        select(func.max(others.c.updated_at)).scalar_subquery(),
+        select(func.count())
+        .select_from(others)
+        .where(others.c.status == "active")
+        .scalar_subquery(),
+    ).where(_SUB.id == _sid())
+
+
+_FINGERPRINT = _fingerprint_stmt()
 
 
 def submission_fingerprint(session: Session, submission_id: int) -> tuple[Any, ...]:
@@ -544,34 +596,18 @@ def submission_fingerprint(session: Session, submission_id: int) -> tuple[Any, .
 
     Its own row (every writer of its rating, versions, status or robustness score bumps
     ``updated_at``; its name and description are compared too, for edits by hand), its
-    newest race (a race queued with it), the state of every race
-    (:func:`_races_fingerprint`: its races starting, finishing or failing) and the ladder (its
-    rank): a few index look-ups instead of the ~15 ms of queries the page costs (issue 13).
+    newest race (a race queued with it), the state of every race (the newest id, the latest
+    finish, how many wait and run: its races starting, finishing or failing) and the ladder
+    (its rank; the last item, as :func:`_leaderboard_fingerprint` reads it): one statement of
+    index look-ups instead of the ~15 ms of queries the page costs (issue 13).
 
     Raises:
         NotFound: no such submission.
     """
-    row = session.execute(
-        select(
-            Submission.updated_at,
-            Submission.races,
-            Submission.status,
-            Submission.active_version_id,
-            Submission.name,
-            Submission.description,
-        ).where(Submission.id == submission_id)
-    ).first()
+    row = session.execute(_FINGERPRINT, {"submission_id": submission_id}).first()
     if row is None:
         raise NotFound(f"no submission {submission_id}")
-    newest = session.scalar(
-        select(func.max(RaceEntry.race_id)).where(RaceEntry.submission_id == submission_id)
-    )
-    return (
-        tuple(row),
-        newest,
-        _races_fingerprint(session),
-        _leaderboard_fingerprint(session),
-    )
+    return tuple(row[:6]), row[6], tuple(row[7:11]), tuple(row[11:13])
 
 
 def submission_detail(
@@ -581,85 +617,138 @@ def submission_detail(
     races: int = 20,
     provisional_races: int = PROVISIONAL_RACES,
     max_age_s: float = SNAPSHOT_MAX_AGE_S,
+    fingerprint: tuple[Any, ...] | None = None,
 ) -> SubmissionDetail:
     """A submission with its versions, its ``races`` latest races and its rating history;
     its rank counts ``provisional_races`` as the leaderboard does. Cached under
-    :func:`submission_fingerprint` (the answer is shared: never change it).
+    :func:`submission_fingerprint` (the answer is shared: never change it); ``fingerprint``:
+    that fingerprint, if the caller has just read it.
 
     Raises:
         NotFound: no such submission.
     """
+    if fingerprint is None:
+        fingerprint = submission_fingerprint(session, submission_id)
     return cache_for(session).get(
         ("submission-detail", submission_id, races, provisional_races),
-        submission_fingerprint(session, submission_id),
-        lambda: _submission_detail(session, submission_id, races, provisional_races),
+        fingerprint,
+        lambda: _submission_detail(
+            session, submission_id, races, provisional_races, max_age_s, fingerprint[-1]
+        ),
         max_age_s,
     )
 
 
+_HEAD = (
+    select(
+        *(_SUB[name] for name in ("id", "name", "description", "status", "active_version_id")),
+        *(_SUB[name] for name in ("mu", "sigma", "ordinal", "races", "wins", "created_at")),
+        _USER.name.label("author"),
+    )
+    .select_from(Submission.__table__.outerjoin(User.__table__, _USER.id == _SUB.user_id))
+    .where(_SUB.id == _sid())
+)
+_VERSIONS = (
+    select(_VER.id, _VER.submission_id, *(_VER[name] for name in VersionInfo.model_fields))
+    .where(_VER.submission_id == _sid())
+    .order_by(_VER.version.desc())
+)
+_VERSION = select(_VER.car, _VER.submission_id).where(_VER.id == bindparam("version_id"))
+
+
 def _submission_detail(
-    session: Session, submission_id: int, races: int, provisional_races: int
+    session: Session,
+    submission_id: int,
+    races: int,
+    provisional_races: int,
+    max_age_s: float = SNAPSHOT_MAX_AGE_S,
+    ladder: tuple[Any, ...] | None = None,
 ) -> SubmissionDetail:
-    sub = session.get(Submission, submission_id)
+    """The detail, computed; ``ladder``: the :func:`_leaderboard_fingerprint` if read."""
+    params = {"submission_id": submission_id}
+    sub = session.execute(_HEAD, params).first()
     if sub is None:
         raise NotFound(f"no submission {submission_id}")
-    author = session.scalar(select(User.name).where(User.id == sub.user_id)) or ""
-    versions = list(
-        session.scalars(
-            select(SubmissionVersion)
-            .where(SubmissionVersion.submission_id == sub.id)
-            .order_by(SubmissionVersion.version.desc())
-        )
-    )
-    active = next((v.version for v in versions if v.id == sub.active_version_id), None)
+    versions = session.execute(_VERSIONS, params).all()
+    active = next((v for v in versions if v.id == sub.active_version_id), None)
+    racing: Any = active  # the racing version's car and submission
+    if active is None and sub.active_version_id is not None:  # not one of its own (by hand)
+        racing = session.execute(_VERSION, {"version_id": sub.active_version_id}).first()
+    rank = None
+    if sub.status == "active":  # its rank in its car class's ladder, as submission_rank
+        if ladder is None:
+            ladder = _leaderboard_fingerprint(session)
+        car = (racing.car if racing else None) or DEFAULT_CAR
+        rank = _ladder_ranks(session, car, provisional_races, max_age_s, ladder).get(sub.id)
+    robustness = None
+    if sub.active_version_id:
+        owner = racing.submission_id if racing else None
+        robustness = _robustness_run(session, owner, sub.active_version_id)
     return SubmissionDetail(
         **_summary(
             sub,
-            author,
-            active,
+            sub.author or "",
+            active.version if active else None,
             versions[0].version if versions else None,
             versions[0].car if versions else None,
         ),
         description=sub.description,
-        rank=submission_rank(session, sub, provisional_races=provisional_races),
+        rank=rank,
         versions=[VersionInfo.model_validate(v) for v in versions],
         recent_races=submission_races(session, submission_id, per_page=races).items
         if races
         else [],
         rating_history=rating_history(session, submission_id),
-        robustness=robustness_run(session, sub.active_version_id)
-        if sub.active_version_id
-        else None,
+        robustness=robustness,
     )
+
+
+_ROBUSTNESS_RUN = (
+    select(
+        *(_RACE[name] for name in ("id", "status", "track", "car", "laps", "seed", "result")),
+        _RACE.error,
+        _RACE.finished_at,
+        _VER.version,
+    )
+    .select_from(
+        Race.__table__.join(RaceEntry.__table__, _ENTRY.race_id == _RACE.id).join(
+            SubmissionVersion.__table__, _VER.id == _ENTRY.version_id
+        )
+    )
+    .where(
+        _ENTRY.submission_id == _sid(),
+        _ENTRY.version_id == bindparam("version_id"),
+        _RACE.kind == "robustness",
+    )
+    .order_by(_RACE.id.desc())
+    .limit(1)
+)
 
 
 def robustness_run(session: Session, version_id: int) -> RobustnessRun | None:
     """The latest robustness run of a version, with every grid point (None if never queued)."""
-    # Through the submission's entries (their (submission, race) index): entries have no
-    # index on the version, and SQLite scanned all of them (11 ms at 100,000 races).
     submission_id = session.scalar(
         select(SubmissionVersion.submission_id).where(SubmissionVersion.id == version_id)
     )
-    row = session.execute(
-        select(Race, SubmissionVersion.version)
-        .join(RaceEntry, RaceEntry.race_id == Race.id)
-        .join(SubmissionVersion, SubmissionVersion.id == RaceEntry.version_id)
-        .where(
-            RaceEntry.submission_id == submission_id,
-            RaceEntry.version_id == version_id,
-            Race.kind == "robustness",
-        )
-        .order_by(Race.id.desc())
-        .limit(1)
+    return _robustness_run(session, submission_id, version_id)
+
+
+def _robustness_run(
+    session: Session, submission_id: int | None, version_id: int
+) -> RobustnessRun | None:
+    """:func:`robustness_run` of version ``version_id`` of submission ``submission_id``."""
+    # Through the submission's entries (their (submission, race) index): entries had no
+    # index on the version, and SQLite scanned all of them (11 ms at 100,000 races).
+    race = session.execute(
+        _ROBUSTNESS_RUN, {"submission_id": submission_id, "version_id": version_id}
     ).first()
-    if row is None:
+    if race is None:
         return None
-    race, version = row
     doc = race.result or {}
     car = (doc.get("cars") or [{}])[0]
     return RobustnessRun(
         race_id=race.id,
-        version=version,
+        version=race.version,
         status=race.status,
         track=race.track,
         car=race.car,
@@ -677,15 +766,20 @@ def robustness_run(session: Session, version_id: int) -> RobustnessRun | None:
     )
 
 
+_RATING_HISTORY = (
+    select(_HIST.race_id, _HIST.mu, _HIST.sigma, _HIST.ordinal, _HIST.created_at)
+    .where(_HIST.submission_id == _sid())
+    .order_by(_HIST.id)
+)
+
+
 def rating_history(session: Session, submission_id: int) -> list[RatingPoint]:
     """A submission's rating after each of its ranked races, oldest first."""
-    columns = [RatingHistory.__table__.c[name] for name in RatingPoint.model_fields]
-    rows = session.execute(  # plain rows: one per race, often hundreds
-        select(*columns)
-        .where(RatingHistory.submission_id == submission_id)
-        .order_by(RatingHistory.id)
-    )
-    return [RatingPoint.model_validate(r) for r in rows]
+    rows = session.execute(_RATING_HISTORY, {"submission_id": submission_id}).all()
+    return [  # one per race, often hundreds: tuples unpacked, keywords (the fastest way in)
+        RatingPoint(race_id=race, mu=mu, sigma=sigma, ordinal=ordinal, created_at=at)
+        for race, mu, sigma, ordinal, at in rows
+    ]
 
 
 # ---- races -----------------------------------------------------------------------------------
@@ -716,20 +810,25 @@ def _race_summaries(session: Session, ids_stmt: Select[Any]) -> list[RaceSummary
     ids = list(session.scalars(ids_stmt))
     if not ids:
         return []
-    columns = [Race.__table__.c[name] for name in _SUMMARY_COLUMNS]
-    rows = {row.id: row for row in session.execute(select(*columns).where(Race.id.in_(ids)))}
-    cars: dict[int, list[Any]] = {race_id: [] for race_id in ids}
-    for car in session.execute(
-        select(
-            RaceEntry.race_id,
-            RaceEntry.position,
-            RaceEntry.status,
-            RaceEntry.name,
-            RaceEntry.submission_id,
-        ).where(RaceEntry.race_id.in_(ids))
-    ):
+    rows = {row.id: row for row in session.execute(_RACE_ROWS, {"ids": ids})}
+    return _summaries(session, [rows[i] for i in ids if i in rows])
+
+
+_SUMMARY = tuple(_RACE[name] for name in _SUMMARY_COLUMNS)
+_RACE_ROWS = select(*_SUMMARY).where(_RACE.id.in_(bindparam("ids", expanding=True)))
+_RACE_CARS = select(
+    _ENTRY.race_id, _ENTRY.position, _ENTRY.status, _ENTRY.name, _ENTRY.submission_id
+).where(_ENTRY.race_id.in_(bindparam("ids", expanding=True)))
+
+
+def _summaries(session: Session, rows: Sequence[Any]) -> list[RaceSummary]:
+    """Summaries of races, in order: ``rows`` have the :data:`_SUMMARY_COLUMNS`."""
+    if not rows:
+        return []
+    cars: dict[int, list[Any]] = {row.id: [] for row in rows}
+    for car in session.execute(_RACE_CARS, {"ids": list(cars)}).all():
         cars[car.race_id].append(car)
-    return [RaceSummary(**_race_fields(rows[i], cars[i])) for i in ids if i in rows]
+    return [RaceSummary(**_race_fields(row, cars[row.id])) for row in rows]
 
 
 def races(
@@ -777,27 +876,36 @@ def races(
     return Page(items=items, total=total, page=page, per_page=per_page)
 
 
+def _robustness_ids() -> Select[Any]:
+    """The ids of robustness runs (races of kind ``robustness``)."""
+    return select(_RACE.id).where(_RACE.kind == "robustness")
+
+
+def _mine(entries: Any = _ENTRY) -> ColumnElement[bool]:
+    """A submission's (``:submission_id``) cars in ``entries``, robustness runs left out."""
+    return (entries.submission_id == _sid()) & ~entries.race_id.in_(_robustness_ids())
+
+
+_MY_COUNT = select(func.count(_ENTRY.id)).where(_mine())
+_MY_RACES = (
+    select(*_SUMMARY)
+    .select_from(RaceEntry.__table__.join(Race.__table__, _RACE.id == _ENTRY.race_id))
+    .where(_mine())
+    .order_by(_ENTRY.race_id.desc())
+    .offset(bindparam("offset"))
+    .limit(bindparam("limit"))
+)
+
+
 def submission_races(
     session: Session, submission_id: int, *, page: int = 1, per_page: int = 20
 ) -> Page[RaceSummary]:
     """The races a submission took part in, newest first (robustness runs left out)."""
     page, per_page = _clamp(page, per_page)
-    mine = (RaceEntry.submission_id == submission_id) & ~RaceEntry.race_id.in_(_robustness_ids())
-    total = _count(session, select(func.count(RaceEntry.id)).where(mine))
-    items = _race_summaries(
-        session,
-        select(RaceEntry.race_id)
-        .where(mine)
-        .order_by(RaceEntry.race_id.desc())
-        .offset((page - 1) * per_page)
-        .limit(per_page),
-    )
+    params = {"submission_id": submission_id, "offset": (page - 1) * per_page, "limit": per_page}
+    total = int(session.scalar(_MY_COUNT, params) or 0)
+    items = _summaries(session, session.execute(_MY_RACES, params).all())
     return Page(items=items, total=total, page=page, per_page=per_page)
-
-
-def _robustness_ids() -> Select[Any]:
-    """The ids of robustness runs (races of kind ``robustness``)."""
-    return select(Race.id).where(Race.kind == "robustness")
 
 
 def race_detail(session: Session, race_id: int) -> RaceDetail:
@@ -950,74 +1058,98 @@ class HeadToHead(_Model):
     draws: int
 
 
+def _my_entries_stmt() -> Select[Any]:
+    others = RaceEntry.__table__.alias("others")  # the race's cars, not correlated to ours
+    n_cars = (
+        select(func.count(others.c.id))
+        .where(others.c.race_id == _RACE.id)
+        .correlate(Race.__table__)
+        .scalar_subquery()
+    )
+    return (
+        select(  # in MyRace's order (unpacked so), then the ratings before and after
+            *(_RACE[name] for name in ("id", "kind", "status", "track")),
+            n_cars,
+            _ENTRY.position,
+            _ENTRY.status,
+            *(_ENTRY[name] for name in ("dnf_reason", "best_lap", "total_time", "penalties")),
+            _RACE.finished_at,
+            *(_ENTRY[name] for name in ("mu_before", "mu_after", "sigma_before", "sigma_after")),
+        )
+        .select_from(RaceEntry.__table__.join(Race.__table__, _RACE.id == _ENTRY.race_id))
+        .where(_mine())
+        .order_by(_ENTRY.race_id.desc())  # its index's order: no sort of all its races
+        .offset(bindparam("offset"))
+        .limit(bindparam("limit"))
+    )
+
+
+_MY_ENTRIES = _my_entries_stmt()
+
+
 def submission_entries(
     session: Session, submission_id: int, *, page: int = 1, per_page: int = 20
 ) -> Page[MyRace]:
     """A submission's races, newest first, each with its own position, penalties, best lap
     and rating change (robustness runs left out: the page shows them apart)."""
     page, per_page = _clamp(page, per_page)
-    where = (RaceEntry.submission_id == submission_id) & ~RaceEntry.race_id.in_(_robustness_ids())
-    total = _count(session, select(func.count(RaceEntry.id)).where(where))
-    n_cars = (
-        select(func.count(RaceEntry.id))
-        .where(RaceEntry.race_id == Race.id)
-        .correlate(Race)
-        .scalar_subquery()
-    )
-    rows = session.execute(
-        select(RaceEntry, Race, n_cars)
-        .join(Race, Race.id == RaceEntry.race_id)
-        .where(where)
-        .order_by(Race.id.desc())
-        .offset((page - 1) * per_page)
-        .limit(per_page)
-    ).all()
+    params = {"submission_id": submission_id, "offset": (page - 1) * per_page, "limit": per_page}
+    total = int(session.scalar(_MY_COUNT, params) or 0)
 
     def change(after: float | None, before: float | None) -> float | None:
         return after - before if after is not None and before is not None else None
 
     items = [
         MyRace(
-            race_id=race.id,
-            kind=race.kind,
-            status=race.status,
-            track=race.track,
-            n_cars=int(count),
-            position=e.position,
-            car_status=e.status,
-            dnf_reason=e.dnf_reason,
-            best_lap=e.best_lap,
-            total_time=e.total_time,
-            penalties=e.penalties,
-            mu_change=change(e.mu_after, e.mu_before),
-            sigma_change=change(e.sigma_after, e.sigma_before),
-            finished_at=race.finished_at,
+            race_id=race_id,
+            kind=kind,
+            status=status,
+            track=track,
+            n_cars=int(n_cars),
+            position=position,
+            car_status=car_status,
+            dnf_reason=dnf_reason,
+            best_lap=best_lap,
+            total_time=total_time,
+            penalties=penalties,
+            mu_change=change(mu_after, mu_before),
+            sigma_change=change(sigma_after, sigma_before),
+            finished_at=finished_at,
         )
-        for e, race, count in rows
+        for (
+            race_id,
+            kind,
+            status,
+            track,
+            n_cars,
+            position,
+            car_status,
+            dnf_reason,
+            best_lap,
+            total_time,
+            penalties,
+            finished_at,
+            mu_before,
+            mu_after,
+            sigma_before,
+            sigma_after,
+        ) in session.execute(_MY_ENTRIES, params).all()
     ]
     return Page(items=items, total=total, page=page, per_page=per_page)
 
 
+# Its records by the submission's index (0007). Every record is set by a ranked race it drove,
+# so these are the tracks it has raced ranked.
+_TRACK_BESTS = (
+    select(_REC.track, _REC.best_lap, _REC.race_id)
+    .where(_REC.submission_id == _sid())
+    .order_by(_REC.track)
+)
+
+
 def track_bests(session: Session, submission_id: int) -> list[TrackBest]:
     """A submission's best lap on every track it has raced ranked, by track name."""
-    # The tracks it raced on first (its entries' index), then its records by the
-    # (track, submission) index: records have no index on the submission alone, and a scan of
-    # every record cost PostgreSQL 20 ms at 100,000 races (issue 13).
-    raced = list(
-        session.scalars(
-            select(Race.track)
-            .join(RaceEntry, RaceEntry.race_id == Race.id)
-            .where(RaceEntry.submission_id == submission_id)
-            .distinct()
-        )
-    )
-    if not raced:
-        return []
-    rows = session.scalars(
-        select(TrackRecord)
-        .where(TrackRecord.track.in_(raced), TrackRecord.submission_id == submission_id)
-        .order_by(TrackRecord.track)
-    )
+    rows = session.execute(_TRACK_BESTS, {"submission_id": submission_id})
     return [TrackBest(track=r.track, best_lap=r.best_lap, race_id=r.race_id) for r in rows]
 
 
@@ -1027,13 +1159,16 @@ def head_to_head(
     *,
     races: int = 2000,
     max_age_s: float = SNAPSHOT_MAX_AGE_S,
+    rated: int | None = None,
 ) -> list[HeadToHead]:
     """The submission's record against each submission it met in its latest ``races`` finished
     ranked races, most-met first (a DNF is behind every finisher; two DNFs draw).
 
     Cached under the submission's rated race count, which every finished ranked race it
-    drives moves (and nothing else changes the record)."""
-    rated = session.scalar(select(Submission.races).where(Submission.id == submission_id))
+    drives moves (and nothing else changes the record); ``rated``: that count, if the caller
+    has just read it."""
+    if rated is None:
+        rated = session.scalar(select(_SUB.races).where(_SUB.id == submission_id))
     return cache_for(session).get(
         ("head-to-head", submission_id, races),
         rated,
@@ -1042,81 +1177,82 @@ def head_to_head(
     )
 
 
+def _head_to_head_stmt() -> Select[Any]:
+    me, them = RaceEntry.__table__.alias("me"), RaceEntry.__table__.alias("them")
+    races = Race.__table__.alias("r")
+    # Its latest finished ranked races, from its own entries (their (submission, race) index,
+    # newest first, which the LIMIT makes the way in), each race tested by its key: not
+    # through the (kind, status) index (SQLite walked every finished ranked race: 150 ms).
+    mine = (
+        select(me.c.race_id, me.c.status, me.c.position)
+        .select_from(me.join(races, races.c.id == me.c.race_id))
+        .where(me.c.submission_id == _sid(), races.c.kind == "ranked", races.c.status == "finished")
+        .order_by(me.c.race_id.desc())
+        .limit(bindparam("races"))
+        .subquery("mine")
+    )
+    done_me = func.coalesce(mine.c.status, "") == "finished"
+    done_them = func.coalesce(them.c.status, "") == "finished"
+    ahead = done_me & (
+        ~done_them | (func.coalesce(mine.c.position, 0) < func.coalesce(them.c.position, 0))
+    )
+    record = (
+        select(
+            them.c.submission_id.label("id"),
+            func.count().label("races"),
+            func.sum(case((ahead, 1), else_=0)).label("wins"),
+            func.sum(case((~done_me & ~done_them, 1), else_=0)).label("draws"),
+        )
+        .select_from(mine.join(them, them.c.race_id == mine.c.race_id))
+        .where(them.c.submission_id.is_not(None), them.c.submission_id != _sid())
+        .group_by(them.c.submission_id)
+        .subquery("record")
+    )
+    return select(record, _SUB.name, _USER.name.label("author")).select_from(
+        record.outerjoin(Submission.__table__, _SUB.id == record.c.id).outerjoin(
+            User.__table__, _USER.id == _SUB.user_id
+        )
+    )
+
+
+_HEAD_TO_HEAD = _head_to_head_stmt()
+
+
 def _head_to_head(session: Session, submission_id: int, races: int) -> list[HeadToHead]:
-    # Driven from the submission's own entries (their index), newest first, a chunk at a time:
-    # joined in one query, SQLite walked every finished ranked race (its (kind, status)
-    # index) looking for the submission's, 150 ms at 100,000 races (issue 13).
-    entries = session.execute(
-        select(RaceEntry.race_id, RaceEntry.status, RaceEntry.position)
-        .where(RaceEntry.submission_id == submission_id)
-        .order_by(RaceEntry.race_id.desc())
-    ).all()
-    mine: dict[int, tuple[str | None, int | None]] = {}
-    for start in range(0, len(entries), _IN_CHUNK):
-        chunk = {e.race_id: (e.status, e.position) for e in entries[start : start + _IN_CHUNK]}
-        # Kind and status tested here: in SQL, SQLite would scan its (kind, status) index.
-        for race_id, kind, status in session.execute(
-            select(Race.id, Race.kind, Race.status).where(Race.id.in_(chunk))
-        ):
-            if kind == "ranked" and status == "finished":
-                mine[race_id] = chunk[race_id]
-        if len(mine) >= races:
-            break
-    kept = sorted(mine, reverse=True)[:races]
-    rows: list[tuple[int, str | None, int | None, str | None, int | None]] = []
-    for start in range(0, len(kept), _IN_CHUNK):
-        for other, o_status, o_pos, race_id in session.execute(
-            select(
-                RaceEntry.submission_id, RaceEntry.status, RaceEntry.position, RaceEntry.race_id
-            ).where(
-                RaceEntry.race_id.in_(kept[start : start + _IN_CHUNK]),
-                RaceEntry.submission_id.is_not(None),
-                RaceEntry.submission_id != submission_id,
-            )
-        ):
-            rows.append((other or 0, o_status, o_pos, *mine[race_id]))  # never None here
-    record: dict[int, list[int]] = {}
-    for other, o_status, o_pos, m_status, m_pos in rows:
-        w_l_d = record.setdefault(other, [0, 0, 0])
-        m_done, o_done = m_status == "finished", o_status == "finished"
-        if not m_done and not o_done:
-            w_l_d[2] += 1
-        elif m_done and (not o_done or (m_pos or 0) < (o_pos or 0)):
-            w_l_d[0] += 1
-        else:
-            w_l_d[1] += 1
-    names = {
-        sid: (name, author)
-        for sid, name, author in session.execute(
-            select(Submission.id, Submission.name, User.name)
-            .join(User, User.id == Submission.user_id)
-            .where(Submission.id.in_(record))
-        ).all()
-    }
+    # One aggregate in SQL: per opponent met in those races, the races, wins and draws.
+    # Rows unpacked as tuples: a Row's attributes cost ~1 us each, on ~200 opponents.
+    rows = session.execute(_HEAD_TO_HEAD, {"submission_id": submission_id, "races": races})
     out = [
         HeadToHead(
-            submission_id=sid,
-            name=names.get(sid, ("?", "?"))[0],
-            author=names.get(sid, ("?", "?"))[1],
-            races=sum(wld),
-            wins=wld[0],
-            losses=wld[1],
-            draws=wld[2],
+            submission_id=other,
+            name=name if author is not None else "?",  # its submission or user deleted
+            author=author if author is not None else "?",
+            races=met,
+            wins=wins,
+            losses=met - wins - draws,
+            draws=draws,
         )
-        for sid, wld in record.items()
+        for other, met, wins, draws, name, author in rows.all()
     ]
-    return sorted(out, key=lambda h: (-h.races, h.name))
+    # Sorted here, not in SQL: PostgreSQL's collation would order names unlike Python's.
+    return sorted(out, key=lambda h: (-h.races, h.name, h.submission_id))
+
+
+_VALIDATION_RACES = (
+    select(_VER.version, func.max(_RACE.id))
+    .select_from(
+        SubmissionVersion.__table__.join(RaceEntry.__table__, _ENTRY.version_id == _VER.id).join(
+            Race.__table__, _RACE.id == _ENTRY.race_id
+        )
+    )
+    .where(_VER.submission_id == _sid(), _RACE.kind == "validation")
+    .group_by(_VER.version)
+)
 
 
 def validation_races(session: Session, submission_id: int) -> dict[int, int]:
     """Version number → the id of its latest validation race."""
-    rows = session.execute(
-        select(SubmissionVersion.version, func.max(Race.id))
-        .join(RaceEntry, RaceEntry.version_id == SubmissionVersion.id)
-        .join(Race, Race.id == RaceEntry.race_id)
-        .where(SubmissionVersion.submission_id == submission_id, Race.kind == "validation")
-        .group_by(SubmissionVersion.version)
-    ).all()
+    rows = session.execute(_VALIDATION_RACES, {"submission_id": submission_id}).all()
     return {int(v): int(r) for v, r in rows}
 
 

@@ -154,6 +154,11 @@ def _render(
     return templates.TemplateResponse(request, name, {"viewer": viewer} | context)
 
 
+def _html(request: Request, name: str, context: dict[str, Any]) -> str:
+    """Template ``name`` rendered for a visitor not signed in, as :func:`_render` would."""
+    return templates.get_template(name).render({"request": request, "viewer": None} | context)
+
+
 def _pager(page: queries.Page[Any], base_url: str) -> dict[str, Any]:
     """Template variables of ``_pager.html`` for a page of rows."""
     sep = "&" if "?" in base_url else "?"
@@ -297,9 +302,16 @@ def submission_page(
     What every visitor sees is cached under :func:`queries.submission_fingerprint` (a few
     index look-ups); only whether the viewer owns it is worked out per request."""
 
+    fingerprint = queries.submission_fingerprint(session, submission_id)
+
     def compute() -> dict[str, Any]:
         sub = queries.submission_detail(
-            session, submission_id, races=0, provisional_races=settings.provisional_races
+            session,
+            submission_id,
+            races=0,
+            provisional_races=settings.provisional_races,
+            max_age_s=settings.cache_max_age_s,
+            fingerprint=fingerprint,
         )
         races = queries.submission_entries(
             session, submission_id, page=pages.page, per_page=pages.per_page
@@ -312,18 +324,25 @@ def submission_page(
             "races": races.items,
             "history_svg": rating_history_svg(history),
             "bests": queries.track_bests(session, submission_id),
-            "h2h": queries.head_to_head(session, submission_id),
+            "h2h": queries.head_to_head(
+                session, submission_id, max_age_s=settings.cache_max_age_s, rated=sub.races
+            ),
             "validation": queries.validation_races(session, submission_id),
             "api_url": f"/api/submissions/{submission_id}",
         } | _pager(races, f"/submissions/{submission_id}")
 
-    view = cache_for(session).get(
-        ("submission-page", submission_id, pages.page, pages.per_page, settings.provisional_races),
-        queries.submission_fingerprint(session, submission_id),
-        compute,
-        settings.cache_max_age_s,
-    )
-    is_owner = viewer is not None and viewer.name == view["sub"].author
+    key = ("submission-page", submission_id, pages.page, pages.per_page, settings.provisional_races)
+    cache = cache_for(session)
+    view = cache.get(key, fingerprint, compute, settings.cache_max_age_s)
+    if viewer is None:  # every visitor not signed in gets the same page: rendered once
+        html = cache.get(
+            (*key, "html"),
+            fingerprint,
+            lambda: _html(request, "submission.html", view | {"is_owner": False}),
+            settings.cache_max_age_s,
+        )
+        return HTMLResponse(html)
+    is_owner = viewer.name == view["sub"].author
     return _render(request, "submission.html", view | {"is_owner": is_owner}, viewer)
 
 
