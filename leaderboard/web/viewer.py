@@ -192,10 +192,12 @@ def inline_script_hashes(index_html: str) -> list[str]:
     return [csp_hash(match.group(3)), csp_hash(raw[css : css + code].decode())]
 
 
-@lru_cache(maxsize=8)
-def _viewer_csp(index: Path, mtime_ns: int) -> str:
+# Keyed on the player page itself, not on its path: every data folder holds a copy of the
+# same player, and hashing it (a pure-Python base-88 decode of ~800 KB) costs ~0.2 s.
+@lru_cache(maxsize=4)
+def _viewer_csp(index_html: str) -> str:
     try:
-        scripts = " ".join(inline_script_hashes(index.read_text(encoding="utf-8")))
+        scripts = " ".join(inline_script_hashes(index_html))
     except (ValueError, ImportError) as err:
         log.warning("replay viewer: cannot hash its scripts (%s); it will not run", err)
         scripts = "'none'"
@@ -214,8 +216,7 @@ def viewer_csp(viewer_dir: Path) -> str:
     decoder); no ``'unsafe-eval'``, so a script message smuggled into a replay cannot run
     (the player runs those with ``new Function``). Connections: the site only.
     """
-    index = Path(viewer_dir) / "index.html"
-    return _viewer_csp(index, index.stat().st_mtime_ns)
+    return _viewer_csp((Path(viewer_dir) / "index.html").read_text(encoding="utf-8"))
 
 
 def viewer_query_error(query_string: str) -> str | None:
