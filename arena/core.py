@@ -39,6 +39,7 @@ STUCK_DISTANCE = 0.5  # m of progress a car must make within ``stuck_time`` seco
 FLIP_UPRIGHT = 0.3  # z of the car's up axis below which it counts as flipped
 CUT_JUMP = 3.0  # m: a larger jump in progress in one control step is a cut, not driving
 STATE_FEATURES = 10  # per car in the global state: x, y, cos, sin, vx, vy, yaw rate, s, race, on
+WHEEL_MARGIN = 1e-9  # m added to the wheels' reach: far above the rounding of wheel offsets
 # DNF reasons by code (0: none). "time_limit" is the step limit on both backends.
 DNF_REASONS: tuple[str | None, ...] = (
     None,
@@ -76,6 +77,8 @@ class EpisodeRules:
         end_on_wall: a car's episode ends when it touches a wall (DNF ``"crashed"``); for
             training on the batched simulator, whose soft walls let a car slide on where a
             pybullet car that hits one at speed stops dead.
+        wheel_reach: m, at least any wheel's distance from the car's centre (plus a margin
+            far above rounding); inf turns off the off-track test's shortcut.
     """
 
     n_cars: int
@@ -92,6 +95,7 @@ class EpisodeRules:
     weights: RewardWeights
     end_on_crash: bool = False
     end_on_wall: bool = False
+    wheel_reach: float = math.inf
 
     @property
     def dt(self) -> float:
@@ -125,6 +129,8 @@ class EpisodeRules:
         n_gates = DEFAULT_CHECKPOINTS
         # tracks.LapCounter's rule: a move may cross at most one gate.
         max_jump = CUT_JUMP if 0.5 * length / n_gates > CUT_JUMP else 0.45 * length / n_gates
+        wheel_x = np.array([0.5, 0.5, -0.5, -0.5]) * params.wheelbase
+        wheel_y = np.array([0.5, -0.5, 0.5, -0.5]) * params.track_width
         return cls(
             n_cars=n_cars,
             laps=laps,
@@ -135,11 +141,12 @@ class EpisodeRules:
             length=length,
             gate_s=ops.asarray(track.checkpoint_s(n_gates)),
             max_jump=max_jump,
-            wheel_x=ops.asarray(np.array([0.5, 0.5, -0.5, -0.5]) * params.wheelbase),
-            wheel_y=ops.asarray(np.array([0.5, -0.5, 0.5, -0.5]) * params.track_width),
+            wheel_x=ops.asarray(wheel_x),
+            wheel_y=ops.asarray(wheel_y),
             weights=weights or RewardWeights(),
             end_on_crash=end_on_crash,
             end_on_wall=end_on_wall,
+            wheel_reach=float(np.max(np.hypot(wheel_x, wheel_y))) + WHEEL_MARGIN,
         )
 
     def delta_s(self, ops: NumpyOps, s_to: Array, s_from: Array) -> Array:
@@ -318,13 +325,22 @@ def episode_step(
     laps_completed = ops.maximum(laps, 0)
 
     # DeepRacer's off-track rule: all four wheels off the road.
-    heading_error = sensed.yaw - sensed.heading
-    sin_h, cos_h = ops.sin(heading_error)[..., None], ops.cos(heading_error)[..., None]
-    wheel_d = sensed.d[..., None] + rules.wheel_x * sin_h + rules.wheel_y * cos_h
-    on = (wheel_d <= sensed.left[..., None]) & (wheel_d >= -sensed.right[..., None])
-    off_track = ~ops.any(on, axis=-1) & active
-    all_wheels_on = ops.all(on, axis=-1)
-    off_time = where(off_track, st.off_time + rules.dt, 0.0)
+    reach = ops.abs(sensed.d) + rules.wheel_reach  # m: no wheel is farther off the centre
+    clear = (reach <= sensed.left) & (reach <= sensed.right)
+    if isinstance(clear, np.ndarray) and np.count_nonzero(clear) == clear.size:
+        # The common case on one race: every car's wheels are all on the road, whatever its
+        # heading; the same values as below, without the work.
+        off_track = np.zeros(clear.shape, dtype=bool)
+        all_wheels_on = ~off_track
+        off_time = ops.zeros(clear.shape)
+    else:
+        heading_error = sensed.yaw - sensed.heading
+        sin_h, cos_h = ops.sin(heading_error)[..., None], ops.cos(heading_error)[..., None]
+        wheel_d = sensed.d[..., None] + rules.wheel_x * sin_h + rules.wheel_y * cos_h
+        on = (wheel_d <= sensed.left[..., None]) & (wheel_d >= -sensed.right[..., None])
+        off_track = ~ops.any(on, axis=-1) & active
+        all_wheels_on = ops.all(on, axis=-1)
+        off_time = where(off_track, st.off_time + rules.dt, 0.0)
 
     contact = sensed.touching & active[..., :, None] & active[..., None, :]
     if isinstance(contact, np.ndarray) and not np.count_nonzero(contact):
@@ -338,13 +354,24 @@ def episode_step(
     new_contact = contact & ~st.contact
 
     newly_finished = active & (laps_completed >= rules.laps)
-    finished = st.finished | newly_finished
-    finish_time = where(newly_finished, now_n, st.finish_time)
-    # Finished cars first (earliest first), then by race progress, then the parked cars;
-    # ``top`` exceeds any progress and stays exact in float32 (not 1e12 − t).
-    top = 4.0 * rules.race_distance + 1000.0
-    rank_key = where(finished, top - finish_time, race_progress)
-    positions = race_positions(where(active | finished, rank_key, -top), ops)
+    if isinstance(newly_finished, np.ndarray) and not np.count_nonzero(newly_finished):
+        finished, finish_time = st.finished, st.finish_time  # the same values, no work
+    else:
+        finished = st.finished | newly_finished
+        finish_time = where(newly_finished, now_n, st.finish_time)
+    if (
+        isinstance(finished, np.ndarray)
+        and not np.count_nonzero(finished)
+        and np.count_nonzero(active) == active.size
+    ):
+        # Everyone still racing, nobody finished: the key below is the race progress.
+        positions = race_positions(race_progress, ops)
+    else:
+        # Finished cars first (earliest first), then by race progress, then the parked cars;
+        # ``top`` exceeds any progress and stays exact in float32 (not 1e12 − t).
+        top = 4.0 * rules.race_distance + 1000.0
+        rank_key = where(finished, top - finish_time, race_progress)
+        positions = race_positions(where(active | finished, rank_key, -top), ops)
     gained = where(active, st.positions - positions, 0)
 
     w = rules.window
