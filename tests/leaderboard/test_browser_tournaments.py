@@ -27,6 +27,7 @@ from tests.leaderboard.test_browser import (  # noqa: F401 - fixtures used by na
     _shot,
     base_url,
     browser,
+    leave_out_the_player,
     pytestmark,
 )
 
@@ -101,6 +102,7 @@ def test_the_tournament_page_shows_standings_heats_and_the_final(
         frame = page.frame_locator("iframe#final-replay")
         frame.locator("canvas").first.wait_for(timeout=TIMEOUT_MS)
         _shot(page, "tournament", full_page=True, timeout=TIMEOUT_MS)
+        leave_out_the_player(page)  # the race page's player: test_browser.py checks it
         page.locator("table#heats a.replay-link").last.click()
         page.wait_for_url(f"**/races/{doc['final']['race_id']}#replay", timeout=TIMEOUT_MS)
         assert page.locator("iframe#replay").count() == 1
