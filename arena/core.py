@@ -354,11 +354,15 @@ def episode_step(
     new_contact = contact & ~st.contact
 
     newly_finished = active & (laps_completed >= rules.laps)
-    if isinstance(newly_finished, np.ndarray) and not np.count_nonzero(newly_finished):
-        finished, finish_time = st.finished, st.finish_time  # the same values, no work
+    nobody_finished = isinstance(newly_finished, np.ndarray) and not np.count_nonzero(
+        newly_finished
+    )
+    if nobody_finished:  # the usual step: the same values as below, without the work
+        finished, finish_time, still = st.finished, st.finish_time, active
     else:
         finished = st.finished | newly_finished
         finish_time = where(newly_finished, now_n, st.finish_time)
+        still = active & ~newly_finished
     if (
         isinstance(finished, np.ndarray)
         and not np.count_nonzero(finished)
@@ -386,13 +390,14 @@ def episode_step(
         onehot = (ops.arange(w)[None, :] == slot[:, None])[..., None]
         history = where(onehot, race_progress[:, None, :], st.history)
         moved = race_progress - ops.take_along(history, oldest.reshape(-1, 1, 1), 1)[:, 0, :]
-    still = active & ~newly_finished
     stuck = still & (steps >= w)[:, None] & (moved < STUCK_DISTANCE)
     lost = still & (off_time > rules.off_track_limit)
     flipped = (
         still & (sensed.upright < FLIP_UPRIGHT) if sensed.upright is not None else still & False
     )
-    terminated = newly_finished | stuck | lost | flipped
+    terminated = stuck | lost | flipped
+    if not nobody_finished:
+        terminated = newly_finished | terminated
     crashed = None
     if rules.end_on_crash or rules.end_on_wall:  # static configuration
         hit = sensed.wall | ops.any(contact, axis=-1) if rules.end_on_crash else sensed.wall
