@@ -65,6 +65,10 @@ from tracks import load_track
 from tracks.errors import TrackError
 from tracks.library import RANDOM_PREFIX
 
+# Opponents in a submission's head-to-head table, most met first (``?opponents=all``: every
+# one): a veteran met ~200, and their rows were most of the page's size and rendering time.
+HEAD_TO_HEAD_ROWS = 20
+
 WEB_DIR = Path(__file__).parent
 STATIC_DIR = WEB_DIR / "static"
 TEMPLATES_DIR = WEB_DIR / "templates"
@@ -296,8 +300,12 @@ def submission_page(
     pages: PageDep,
     submission_id: IdPath,
     viewer: ViewerDep,
+    opponents: Annotated[
+        Literal["", "all"], Query(description="all: every opponent in the head-to-head table")
+    ] = "",
 ) -> HTMLResponse:
-    """One submission: facts, rating history chart, versions and races.
+    """One submission: facts, rating history chart, versions and races; the head-to-head
+    table lists the :data:`HEAD_TO_HEAD_ROWS` opponents met most (``opponents=all``: all).
 
     What every visitor sees is cached under :func:`queries.submission_fingerprint` (a few
     index look-ups); only whether the viewer owns it is worked out per request."""
@@ -318,20 +326,29 @@ def submission_page(
         )
         # The chart starts from the prior (race 0), then one point after each rated race.
         history = [(MU0, SIGMA0)] + [(p.mu, p.sigma) for p in sub.rating_history]
+        h2h = queries.head_to_head(
+            session, submission_id, max_age_s=settings.cache_max_age_s, rated=sub.races
+        )
         return {
             "sub": sub,
             "versions": sub.versions,
             "races": races.items,
             "history_svg": rating_history_svg(history),
             "bests": queries.track_bests(session, submission_id),
-            "h2h": queries.head_to_head(
-                session, submission_id, max_age_s=settings.cache_max_age_s, rated=sub.races
-            ),
+            "h2h": h2h if opponents else h2h[:HEAD_TO_HEAD_ROWS],
+            "h2h_total": len(h2h),
             "validation": queries.validation_races(session, submission_id),
             "api_url": f"/api/submissions/{submission_id}",
         } | _pager(races, f"/submissions/{submission_id}")
 
-    key = ("submission-page", submission_id, pages.page, pages.per_page, settings.provisional_races)
+    key = (
+        "submission-page",
+        submission_id,
+        pages.page,
+        pages.per_page,
+        opponents,
+        settings.provisional_races,
+    )
     cache = cache_for(session)
     view = cache.get(key, fingerprint, compute, settings.cache_max_age_s)
     if viewer is None:  # every visitor not signed in gets the same page: rendered once
