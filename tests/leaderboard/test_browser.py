@@ -229,7 +229,9 @@ def test_replay_player_shows_the_cars(browser: Any, base_url: str, site: Site) -
     camera = (
         f"&initialCameraPosition={cx:.2f},{cy - 3:.2f},2.5&initialCameraLookAt={cx:.2f},{cy:.2f},0"
     )
-    page = browser.new_page(viewport={"width": 960, "height": 600})
+    # A small window: software WebGL's cost grows with the pixels; a close-up fills it with
+    # the cars anyway (each car ~1,000-4,000 px of its colour here, ~5x that at 960x600).
+    page = browser.new_page(viewport={"width": 480, "height": 300})
     try:
         page.goto(
             base_url + viewer_url(f"/replays/{REPLAY_RACE}.viser") + camera, timeout=TIMEOUT_MS
@@ -238,7 +240,7 @@ def test_replay_player_shows_the_cars(browser: Any, base_url: str, site: Site) -
         page.keyboard.press("Space")  # pause, then go to t = 0: the cars on the grid
         time_box.fill("0")
         time_box.press("Enter")
-        page.mouse.click(480, 250)  # leave the time box (a click without a drag)
+        page.mouse.click(240, 125)  # leave the time box (a click without a drag)
         page.add_style_tag(content=".mantine-Notification-root{display:none!important}")
         page.wait_for_timeout(3000)
         frame = canvas.screenshot(timeout=TIMEOUT_MS)
