@@ -307,9 +307,10 @@ def submission_page(
     """One submission: facts, rating history chart, versions and races; the head-to-head
     table lists the :data:`HEAD_TO_HEAD_ROWS` opponents met most (``opponents=all``: all).
 
-    What every visitor sees is cached under :func:`queries.submission_fingerprint` (a few
-    index look-ups); only whether the viewer owns it is worked out per request."""
-
+    What every visitor sees is cached under :func:`queries.submission_fingerprint` (one
+    statement of index look-ups), and rendered once for visitors not signed in; only a
+    signed-in viewer's page (its header, whether it owns the submission) is rendered per
+    request."""
     fingerprint = queries.submission_fingerprint(session, submission_id)
 
     def compute() -> dict[str, Any]:
