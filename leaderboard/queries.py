@@ -664,21 +664,30 @@ def submission_detail(
     )
 
 
+_HEAD_COLUMNS = (
+    *("id", "name", "description", "status", "active_version_id"),
+    *("mu", "sigma", "ordinal", "races", "wins", "created_at"),
+)
+_VERSION_COLUMNS = ("id", "submission_id", *VersionInfo.model_fields)
+# The submission, its author and its versions, newest first: a row per version (one, its
+# versions' columns None, before its first upload).
 _HEAD = (
     select(
-        *(_SUB[name] for name in ("id", "name", "description", "status", "active_version_id")),
-        *(_SUB[name] for name in ("mu", "sigma", "ordinal", "races", "wins", "created_at")),
+        *(_SUB[name] for name in _HEAD_COLUMNS),
         _USER.name.label("author"),
+        *(_VER[name] for name in _VERSION_COLUMNS),
     )
-    .select_from(Submission.__table__.outerjoin(User.__table__, _USER.id == _SUB.user_id))
+    .select_from(
+        Submission.__table__.outerjoin(User.__table__, _USER.id == _SUB.user_id).outerjoin(
+            SubmissionVersion.__table__, _VER.submission_id == _SUB.id
+        )
+    )
     .where(_SUB.id == _sid())
-)
-_VERSIONS = (
-    select(_VER.id, _VER.submission_id, *(_VER[name] for name in VersionInfo.model_fields))
-    .where(_VER.submission_id == _sid())
     .order_by(_VER.version.desc())
 )
-_VERSION = select(_VER.car, _VER.submission_id).where(_VER.id == bindparam("version_id"))
+_VERSION = select(*(_VER[name] for name in _VERSION_COLUMNS)).where(
+    _VER.id == bindparam("version_id")
+)
 
 
 def _submission_detail(
@@ -690,35 +699,35 @@ def _submission_detail(
     ladder: tuple[Any, ...] | None = None,
 ) -> SubmissionDetail:
     """The detail, computed; ``ladder``: the :func:`_leaderboard_fingerprint` if read."""
-    params = {"submission_id": submission_id}
-    sub = session.execute(_HEAD, params).first()
-    if sub is None:
+    rows = session.execute(_HEAD, {"submission_id": submission_id}).all()
+    if not rows:
         raise NotFound(f"no submission {submission_id}")
-    versions = session.execute(_VERSIONS, params).all()
-    active = next((v for v in versions if v.id == sub.active_version_id), None)
-    racing: Any = active  # the racing version's car and submission
+    sub, at = rows[0], len(_HEAD_COLUMNS) + 1  # its columns, then its author, then a version's
+    versions = [dict(zip(_VERSION_COLUMNS, row[at:], strict=True)) for row in rows]
+    versions = [v for v in versions if v["id"] is not None]
+    active = next((v for v in versions if v["id"] == sub.active_version_id), None)
+    racing = active  # the racing version (its car: the ladder; its submission's entries)
     if active is None and sub.active_version_id is not None:  # not one of its own (by hand)
-        racing = session.execute(_VERSION, {"version_id": sub.active_version_id}).first()
-    car = racing.car if racing else None
+        row = session.execute(_VERSION, {"version_id": sub.active_version_id}).first()
+        racing = dict(row._mapping) if row else None
+    car = racing["car"] if racing else None
     rank = _rank(session, sub.id, sub.status, car, provisional_races, max_age_s, ladder)
     robustness = None
     if sub.active_version_id:
-        owner = racing.submission_id if racing else None
+        owner = racing["submission_id"] if racing else None
         robustness = _robustness_run(session, owner, sub.active_version_id)
     return SubmissionDetail(
         **_summary(
             sub,
             sub.author or "",
-            active.version if active else None,
-            versions[0].version if versions else None,
-            versions[0].car if versions else None,
+            active["version"] if active else None,
+            versions[0]["version"] if versions else None,
+            versions[0]["car"] if versions else None,
         ),
         description=sub.description,
         rank=rank,
         versions=[VersionInfo.model_validate(v) for v in versions],
-        recent_races=submission_races(session, submission_id, per_page=races).items
-        if races
-        else [],
+        recent_races=_recent_races(session, submission_id, races) if races else [],
         rating_history=rating_history(session, submission_id),
         robustness=robustness,
     )
@@ -923,10 +932,17 @@ def submission_races(
 ) -> Page[RaceSummary]:
     """The races a submission took part in, newest first (robustness runs left out)."""
     page, per_page = _clamp(page, per_page)
-    params = {"submission_id": submission_id, "offset": (page - 1) * per_page, "limit": per_page}
-    total = int(session.scalar(_MY_COUNT, params) or 0)
-    items = _summaries(session, session.execute(_MY_RACES, params).all())
+    total = int(session.scalar(_MY_COUNT, {"submission_id": submission_id}) or 0)
+    items = _recent_races(session, submission_id, per_page, (page - 1) * per_page)
     return Page(items=items, total=total, page=page, per_page=per_page)
+
+
+def _recent_races(
+    session: Session, submission_id: int, limit: int, offset: int = 0
+) -> list[RaceSummary]:
+    """:func:`submission_races`' items without their count (the detail needs no pager)."""
+    params = {"submission_id": submission_id, "offset": offset, "limit": _clamp(1, limit)[1]}
+    return _summaries(session, session.execute(_MY_RACES, params).all())
 
 
 def race_detail(session: Session, race_id: int) -> RaceDetail:
