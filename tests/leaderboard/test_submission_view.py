@@ -170,3 +170,20 @@ def test_api_answer_is_the_detail_and_follows_new_races(
     assert after == [detail(sid) for sid in subs]  # not the answers cached before the races
     assert after != before
     assert client.get("/api/submissions/999999").status_code == 404
+
+
+def test_race_table_counts_its_races_on_every_page(db: Session, settings: Settings) -> None:
+    """The pager's total comes with the rows; a page past the end still counts them all."""
+    subs, _ = factories.seed(db, settings, n_submissions=3, n_races=4)
+    house = db.scalar(select(User).where(User.name == "house"))
+    assert house is not None
+    fresh = Submission(user_id=house.id, name="never-raced")  # no version, no race yet
+    db.add(fresh)
+    db.commit()
+    for sid in [*subs, fresh.id]:
+        every = [r.id for r in queries.submission_races(db, sid, per_page=200).items]
+        assert bool(every) == (sid != fresh.id)  # validation and ranked races, or none
+        for page in (1, 2, 50):
+            got = queries.submission_entries(db, sid, page=page, per_page=2)
+            assert got.total == len(every)
+            assert [r.race_id for r in got.items] == every[(page - 1) * 2 : page * 2]
