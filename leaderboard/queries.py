@@ -643,23 +643,32 @@ def submission_detail(
     provisional_races: int = PROVISIONAL_RACES,
     max_age_s: float = SNAPSHOT_MAX_AGE_S,
     fingerprint: tuple[Any, ...] | None = None,
+    cache: bool = True,
 ) -> SubmissionDetail:
     """A submission with its versions, its ``races`` latest races and its rating history;
     its rank counts ``provisional_races`` as the leaderboard does. Cached under
     :func:`submission_fingerprint` (the answer is shared: never change it); ``fingerprint``:
-    that fingerprint, if the caller has just read it.
+    that fingerprint, if the caller has just read it; ``cache=False``: computed, not kept (for
+    callers that cache what they make of it: one snapshot per view, not two).
 
     Raises:
         NotFound: no such submission.
     """
     if fingerprint is None:
         fingerprint = submission_fingerprint(session, submission_id)
+    ladder = fingerprint[-1]
+
+    def compute() -> SubmissionDetail:
+        return _submission_detail(
+            session, submission_id, races, provisional_races, max_age_s, ladder
+        )
+
+    if not cache:
+        return compute()
     return cache_for(session).get(
         ("submission-detail", submission_id, races, provisional_races),
         fingerprint,
-        lambda: _submission_detail(
-            session, submission_id, races, provisional_races, max_age_s, fingerprint[-1]
-        ),
+        compute,
         max_age_s,
     )
 

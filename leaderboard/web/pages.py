@@ -315,7 +315,7 @@ def submission_page(
     request."""
     fingerprint = queries.submission_fingerprint(session, submission_id)
 
-    def compute() -> dict[str, Any]:
+    def compute() -> tuple[dict[str, Any], str]:
         sub = queries.submission_detail(
             session,
             submission_id,
@@ -323,6 +323,7 @@ def submission_page(
             provisional_races=settings.provisional_races,
             max_age_s=settings.cache_max_age_s,
             fingerprint=fingerprint,
+            cache=False,  # the page made of it is what is kept
         )
         races = queries.submission_entries(
             session, submission_id, page=pages.page, per_page=pages.per_page
@@ -332,7 +333,7 @@ def submission_page(
         h2h = queries.head_to_head(
             session, submission_id, max_age_s=settings.cache_max_age_s, rated=sub.races
         )
-        return {
+        view = {
             "sub": sub,
             "versions": sub.versions,
             "races": races.items,
@@ -343,6 +344,8 @@ def submission_page(
             "validation": queries.validation_races(session, submission_id),
             "api_url": f"/api/submissions/{submission_id}",
         } | _pager(races, f"/submissions/{submission_id}")
+        # Rendered at once for visitors not signed in (most of them): one snapshot per view.
+        return view, _html(request, "submission.html", view | {"is_owner": False})
 
     key = (
         "submission-page",
@@ -352,15 +355,8 @@ def submission_page(
         opponents,
         settings.provisional_races,
     )
-    cache = cache_for(session)
-    view = cache.get(key, fingerprint, compute, settings.cache_max_age_s)
-    if viewer is None:  # every visitor not signed in gets the same page: rendered once
-        html = cache.get(
-            (*key, "html"),
-            fingerprint,
-            lambda: _html(request, "submission.html", view | {"is_owner": False}),
-            settings.cache_max_age_s,
-        )
+    view, html = cache_for(session).get(key, fingerprint, compute, settings.cache_max_age_s)
+    if viewer is None:  # every visitor not signed in gets the same page
         return HTMLResponse(html)
     is_owner = viewer.name == view["sub"].author
     return _render(request, "submission.html", view | {"is_owner": is_owner}, viewer)

@@ -123,6 +123,7 @@ def get_submission(
             provisional_races=settings.provisional_races,
             max_age_s=settings.cache_max_age_s,
             fingerprint=fingerprint,
+            cache=False,  # its JSON is what is kept
         )
         return detail.model_dump_json(by_alias=True).encode()  # as FastAPI writes it
 
