@@ -73,7 +73,8 @@ class _LazyPybullet:
 
     def __getattr__(self, name: str) -> Any:
         global pb  # noqa: PLW0603 - the module global is the cache
-        pb = _import_pybullet()
+        if isinstance(pb, _LazyPybullet):  # a caller holding the proxy must not re-import
+            pb = _import_pybullet()
         return getattr(pb, name)
 
 
