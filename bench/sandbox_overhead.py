@@ -49,11 +49,13 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import platform
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -174,16 +176,40 @@ def _in_mode(mode: str, make: Any) -> Any:
             os.environ["SANDBOX"] = before
 
 
+UNSCHEDULED = " unscheduled"  # a mode's figures without submissions.scheduling
+
+
+@contextlib.contextmanager
+def _scheduling(placed: bool) -> Iterator[None]:
+    """Sandboxes started (or taken from a pool) inside: placed by ``PLACEMENT`` or not, and
+    asking for no wake-up request themselves (the caller decides when one is held)."""
+    from submissions.scheduling import LATENCY_ENV, PLACEMENT
+
+    before, enabled = os.environ.get(LATENCY_ENV), PLACEMENT.enabled
+    os.environ[LATENCY_ENV], PLACEMENT.enabled = "off", placed
+    try:
+        yield
+    finally:
+        PLACEMENT.enabled = enabled
+        if before is None:
+            os.environ.pop(LATENCY_ENV, None)
+        else:
+            os.environ[LATENCY_ENV] = before
+
+
 def per_step(
     folder: Path, track: str, steps: int, limits: Any, modes: list[str], blocks: int = 10
 ) -> dict[str, Any]:
     """Seconds per step in-process, and per mode sandboxed and round-trip-only (medians of
-    interleaved blocks, after a reset and 20 warm-up steps each), with the ratios."""
+    interleaved blocks, after a reset and 20 warm-up steps each), with the ratios; each mode
+    as every race runs it (started on the CPU ``PLACEMENT`` picks, fast wake-ups held during
+    its blocks) and unscheduled (placed by the kernel, no request held)."""
     import statistics
 
     from agents.baselines import make_baseline
     from agents.loading import DEFAULT_LAYOUT
     from submissions.remote import SandboxedPolicy
+    from submissions.scheduling import LatencyRequest
 
     observations = record_observations(track, steps)
     chunk = max(1, len(observations) // blocks)
@@ -191,21 +217,33 @@ def per_step(
     pursuit = _bundle(folder, "pursuit_boxed", PURSUIT_SOURCE)
     zeros = _bundle(folder, "zeros_boxed", ZERO_SOURCE)
     policies: dict[str, Any] = {"in_process": make_baseline("pursuit", DEFAULT_LAYOUT)}
-    for mode in modes:
-        policies[f"{mode}/pursuit"] = _in_mode(mode, lambda: SandboxedPolicy(pursuit, limits))
-        policies[f"{mode}/zeros"] = _in_mode(mode, lambda: SandboxedPolicy(zeros, limits))
+    variants = [m + v for m in modes for v in ("", UNSCHEDULED)]
+    for variant in variants:
+        mode = variant.split()[0]
+        policies[f"{variant}/pursuit"] = _in_mode(mode, lambda: SandboxedPolicy(pursuit, limits))
+        policies[f"{variant}/zeros"] = _in_mode(mode, lambda: SandboxedPolicy(zeros, limits))
+    fast = LatencyRequest()  # held during the scheduled variants' blocks, as races hold it
     try:
-        for policy in policies.values():  # start them all, then wait: they load in parallel
-            getattr(policy, "start", lambda: None)()
+        for key, policy in policies.items():  # start them all, then wait: they load in parallel
+            with _scheduling(placed=UNSCHEDULED not in key):
+                getattr(policy, "start", lambda: None)()
         for policy in policies.values():
             policy.reset(0)
             for obs in observations[:20]:
                 policy.act(obs)
         pids = {key: _sandbox_pids(policy) for key, policy in policies.items()}
         times: dict[str, list[tuple[float, ...]]] = {key: [] for key in policies}
+        held = False
         for part in parts:
             for key, policy in policies.items():
-                times[key].append(time_per_step(policy, part, pids[key]))
+                scheduled = "/" in key and UNSCHEDULED not in key
+                if scheduled:
+                    held = fast.acquire()
+                try:
+                    times[key].append(time_per_step(policy, part, pids[key]))
+                finally:
+                    if scheduled:
+                        fast.release()
     finally:
         for policy in policies.values():
             getattr(policy, "close", lambda: None)()
@@ -218,8 +256,9 @@ def per_step(
         "in_process_us": wall * 1e6,
         "in_process_cpu_us": cpu * 1e6,
         "in_process_cpu_wait_us": wait * 1e6,
+        "wakeup_request_held": held,  # False where /dev/cpu_dma_latency cannot be opened
     }
-    for mode in modes:
+    for mode in variants:
         boxed, trip = median[f"{mode}/pursuit"], median[f"{mode}/zeros"]
         out[mode] = {
             "sandboxed_us": boxed[0] * 1e6,
@@ -287,15 +326,21 @@ def races_per_minute(
     bundle = _bundle(folder, "pursuit_race", PURSUIT_SOURCE)
     zipped = folder / "pursuit_race.zip"
     spent: dict[str, list[float]] = {"in_process": [], "executor/in_process": []}
-    spent |= {f"{m}/{k}": [] for m in modes for k in ("fresh", "pooled", "executor")}
+    kinds = ("fresh", "pooled", "pooled_unscheduled", "executor")
+    spent |= {f"{m}/{k}": [] for m in modes for k in kinds}
     statuses: dict[str, list[str]] = {m: [] for m in modes}
     pools = {mode: SandboxPool() for mode in modes}
+    plain_pools = {mode: SandboxPool() for mode in modes}  # placed by the kernel, no request
     # The real path (slipstream evaluate, slipstream worker): one job process, kept warm
     # between runs as they keep it, racing run_race_job with the replay log written.
     executors = {key: LocalExecutor(workers=1, keep_warm_s=3600.0) for key in [*modes, "none"]}
 
-    def timed(key: str, cars: list[Any], seed: int) -> list[str]:
+    def timed(key: str, cars: list[Any], seed: int, placed: bool = True) -> list[str]:
         start = time.perf_counter()
+        if not placed:  # started here, unscheduled, in the race's time like any start
+            with _scheduling(placed=False):
+                for car in cars:
+                    car.start()
         result, _ = run_race(cars, track=track, seed=seed)
         spent[key].append(time.perf_counter() - start)
         return [c.status for c in result.cars]
@@ -331,6 +376,13 @@ def races_per_minute(
                     mode, lambda pool=pool: [pool.policy(bundle, limits) for _ in range(4)]
                 )
                 statuses[mode] += timed(f"{mode}/pooled", pooled, seed)
+                plain_pool = plain_pools[mode]
+                with _scheduling(placed=False):  # taken from its pool: holds no request
+                    plain = _in_mode(
+                        mode,
+                        lambda pool=plain_pool: [pool.policy(bundle, limits) for _ in range(4)],
+                    )
+                statuses[mode] += timed(f"{mode}/pooled_unscheduled", plain, seed, placed=False)
                 # its job process is spawned (inheriting SANDBOX) on the first run
                 statuses[mode] += _in_mode(
                     mode,
@@ -339,7 +391,7 @@ def races_per_minute(
                     ),
                 )
     finally:
-        for pool in pools.values():
+        for pool in [*pools.values(), *plain_pools.values()]:
             pool.close()
         for executor in executors.values():
             executor.close()
@@ -356,6 +408,7 @@ def races_per_minute(
     }
     for mode in modes:
         fresh, pooled = per_min(spent[f"{mode}/fresh"]), per_min(spent[f"{mode}/pooled"])
+        plain = per_min(spent[f"{mode}/pooled_unscheduled"])
         real = per_min(spent[f"{mode}/executor"])
         # after the pool's start-up (paid in the batch's first race), against the same races
         steady = per_min(spent[f"{mode}/pooled"][1:]) / per_min(spent["in_process"][1:])
@@ -367,6 +420,11 @@ def races_per_minute(
             "pooled_ratio": pooled / in_process,
             "executor_ratio": real / in_process,
             "pooled_after_start_ratio": steady,
+            "pooled_unscheduled_races_per_min": plain,
+            "pooled_unscheduled_ratio": plain / in_process,
+            "pooled_unscheduled_after_start_ratio": (
+                per_min(spent[f"{mode}/pooled_unscheduled"][1:]) / per_min(spent["in_process"][1:])
+            ),
             "executor_after_start_ratio": (
                 per_min(spent[f"{mode}/executor"][1:]) / per_min(spent["in_process"][1:])
             ),
@@ -456,6 +514,7 @@ def print_table(doc: dict[str, Any]) -> None:
         "pooled ×",
         "executor ×",
         "pooled × after start-up",
+        "unscheduled pooled × (after start-up)",
         "executor × after start-up",
         "finished",
     ):
@@ -486,6 +545,8 @@ def print_table(doc: dict[str, Any]) -> None:
             f"{r['pooled_ratio']:.2f}",
             f"{r['executor_ratio']:.2f}",
             f"{r['pooled_after_start_ratio']:.2f}",
+            f"{r['pooled_unscheduled_ratio']:.2f} "
+            f"({r['pooled_unscheduled_after_start_ratio']:.2f})",
             f"{r['executor_after_start_ratio']:.2f}",
             f"{r['finished_fraction']:.0%}",
         )

@@ -68,6 +68,7 @@ DTYPES: dict[int, np.dtype[Any]] = {
 }
 _CODES = {dt.str: code for code, dt in DTYPES.items()}  # keyed by "<f4", "|u1"…: fast
 _SHAPES = [struct.Struct(f"<{n}Q") for n in range(MAX_NDIM + 1)]  # a shape of n axes
+_HEAD_1D = struct.Struct("<2sBBBxHQQ")  # a header and its one axis: most frames
 _EMPTY = np.zeros(0, np.uint8)
 
 
@@ -179,6 +180,26 @@ def decode_frame(data: bytes, max_frame: int = MAX_FRAME, *, trailing: bool = Fa
             payload over ``max_frame``, or (without ``trailing``) ``data`` longer than the
             frame.
     """
+    if len(data) >= _HEAD_1D.size:  # the usual frame (one axis): the same checks, at once
+        magic, code_kind, code, ndim, seq, nbytes, n = _HEAD_1D.unpack_from(data)
+        kind, dtype = _KINDS.get(code_kind), DTYPES.get(code)
+        end = _HEAD_1D.size + nbytes
+        if (
+            ndim == 1
+            and magic == MAGIC
+            and kind is not None
+            and dtype is not None
+            and nbytes <= max_frame  # so the axis is too: n == nbytes / itemsize
+            and n * dtype.itemsize == nbytes
+            and (len(data) == end or (trailing and len(data) > end))
+        ):
+            return Frame(kind, np.frombuffer(data, dtype, n, _HEAD_1D.size), seq)
+    # Anything else, every refusal and every short frame included, takes the general path.
+    return _decode_general(data, max_frame, trailing)
+
+
+def _decode_general(data: bytes, max_frame: int, trailing: bool) -> Frame:
+    """:func:`decode_frame` for any frame, step by step (each refusal with its reason)."""
     kind, dtype, ndim, seq, nbytes = parse_header(data, max_frame)
     head = HEADER.size + DIM.size * ndim
     if len(data) < head:

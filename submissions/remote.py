@@ -103,6 +103,7 @@ from submissions.protocol import (
     encode,
 )
 from submissions.sandbox import SandboxLimits, SandboxProcess, sandbox_mode
+from submissions.scheduling import PLACEMENT, WAKEUPS
 
 log = logging.getLogger(__name__)
 OUTPUT_HEAD = 4 << 10  # bytes of the worker's output kept from the start
@@ -268,6 +269,10 @@ _WAITING_LOCK = threading.Lock()
 def _pump(me: SandboxedPolicy, timeout: float) -> None:
     """Wait up to ``timeout`` s for a wake-up on ``me``'s bell or any waiting policy's;
     take and timestamp every reply that came."""
+    if me._bell >= 0 and len(_WAITING) == 1 and me in _WAITING:  # alone: no snapshot needed
+        if me._poller.poll(max(0, math.ceil(timeout * 1000))):
+            me._pull(time.monotonic())
+        return
     with _WAITING_LOCK:
         others = [p for p in _WAITING if p is not me and p._bell >= 0]
     if others or me._bell < 0:
@@ -379,6 +384,7 @@ class SandboxedPolicy:
         self._rung = 0  # wake-ups read from the bell since the start
         self._rung_at_post = 0  # … when the current request was posted
         self._reply: tuple[float, Frame | ProtocolError | str] | None = None  # to _seq
+        self._wakeups = False  # it holds one count of the process's fast wake-ups
 
     # ---- lifecycle -----------------------------------------------------------------------
 
@@ -390,6 +396,7 @@ class SandboxedPolicy:
         """
         if self._proc is not None:
             return
+        self._hold_wakeups()  # first: a malformed setting fails before any process starts
         self.failure = None
         self.bank = self.limits.overage_s
         self._ready = False
@@ -399,6 +406,9 @@ class SandboxedPolicy:
         channel = Channel(request_bytes_for(self.env_spec.get("obs_shape", [])))
         out_r, out_w = os.pipe()  # the worker's stdout and stderr
         args = ["--channel", channel.worker_arg(), "--spec", json.dumps(self.env_spec)]
+        cpu = PLACEMENT.next_cpu()  # started there, then free again (scheduling module)
+        if cpu is not None:
+            args += ["--cpus", ",".join(map(str, sorted(os.sched_getaffinity(0))))]
         try:
             self._proc = SandboxProcess(
                 args,
@@ -407,11 +417,13 @@ class SandboxedPolicy:
                 pass_fds=channel.worker_fds,
                 output_fd=out_w,
                 mode=self.mode,
+                cpu=cpu,
             )
         except BaseException:
             channel.close()
             for fd in (out_r, out_w):
                 os.close(fd)
+            self._free_wakeups()
             raise
         finally:
             channel.spawned()  # the worker has its copies (or there is no worker)
@@ -466,6 +478,7 @@ class SandboxedPolicy:
                 with contextlib.suppress(OSError):
                     os.close(self._output_fd)
         self._reader = None
+        self._free_wakeups()
         if self.scratch is not None:
             shutil.rmtree(self.scratch, ignore_errors=True)
             self.scratch = None
@@ -479,6 +492,18 @@ class SandboxedPolicy:
             and self._sent_at is None
             and self._bell >= 0
         )
+
+    def _hold_wakeups(self) -> None:
+        """Count this policy among the holders of the process's fast wake-ups
+        (:mod:`submissions.scheduling`) while its sandbox is active; idempotent."""
+        if not self._wakeups:
+            WAKEUPS.acquire()
+            self._wakeups = True
+
+    def _free_wakeups(self) -> None:
+        if self._wakeups:
+            self._wakeups = False
+            WAKEUPS.release()
 
     def _recycle(self) -> None:
         """Fresh per-race state (on leaving the pool): the bank, the race deadline, step
@@ -829,6 +854,7 @@ class SandboxPool:
         if idle:
             policy = idle.pop()
             policy._pooled = False
+            policy._hold_wakeups()
             policy._recycle()
             policy.name = bundle.manifest.name
             return policy
@@ -837,6 +863,7 @@ class SandboxPool:
     def give_back(self, policy: SandboxedPolicy) -> None:
         """Keep ``policy`` (healthy, running) for a later race."""
         key = self._key(policy.bundle, policy.limits, policy.env_spec)
+        policy._free_wakeups()  # idle between races: its CPUs may sleep
         policy._pooled = True
         self._idle.setdefault(key, []).append(policy)
 

@@ -731,13 +731,14 @@ def drop_identity(uid: int) -> None:
 
 
 def _preexec(
-    limits: SandboxLimits, procs_files: list[str], identity: Identity | None
+    limits: SandboxLimits, procs_files: list[str], identity: Identity | None, cpu: int | None
 ) -> Callable[[], None]:
     """Runs in the child between fork and exec (system calls only, prepared here).
 
-    Joins the cgroups, sets the rlimits; with ``identity`` (fallback run by root) drops the
-    bounding set, the groups, the uid/gid and then every remaining capability; always sets
-    the parent-death signal last (a credential change clears it) and ``no_new_privs``.
+    Binds it to ``cpu`` (if given), joins the cgroups, sets the rlimits; with ``identity``
+    (fallback run by root) drops the bounding set, the groups, the uid/gid and then every
+    remaining capability; always sets the parent-death signal last (a credential change
+    clears it) and ``no_new_privs``.
     """
     rlimits = [
         (resource.RLIMIT_AS, limits.memory_mb * _MIB),
@@ -755,8 +756,11 @@ def _preexec(
     nothing = (_CapData * 2)()
     caps = range(_cap_last() + 1)
     parent = os.getpid()
+    cpus = None if cpu is None else {cpu}
 
     def run() -> None:
+        if cpus is not None:
+            os.sched_setaffinity(0, cpus)
         for path in procs_files:
             fd = os.open(path, os.O_WRONLY)
             try:
@@ -937,6 +941,9 @@ class SandboxProcess:
         pass_fds: the descriptors the worker inherits (the protocol pipes).
         output_fd: where the worker's stdout and stderr go (a pipe the host drains).
         mode: ``"bwrap"`` or ``"seccomp"`` (default: :func:`sandbox_mode`).
+        cpu: the CPU its first process is bound to from its start (None: the kernel
+            places it); the worker widens its mask again once loaded
+            (:mod:`submissions.scheduling`).
 
     Attributes:
         folder: the sandbox's folder (None once removed).
@@ -956,6 +963,7 @@ class SandboxProcess:
         pass_fds: Sequence[int],
         output_fd: int,
         mode: str | None = None,
+        cpu: int | None = None,
     ) -> None:
         self.mode = mode or sandbox_mode()
         self.id = uuid.uuid4().hex[:12]
@@ -992,7 +1000,7 @@ class SandboxProcess:
                 start_new_session=True,
                 env=env,
                 cwd=cwd,
-                preexec_fn=_preexec(limits, self.cgroups.procs_files, self.identity),  # noqa: PLW1509 - os calls only
+                preexec_fn=_preexec(limits, self.cgroups.procs_files, self.identity, cpu),  # noqa: PLW1509 - os calls only
             )
             uid = self.identity.uid if self.identity is not None else os.geteuid()
             (self.folder / "pgid").write_text(f"{self.proc.pid} {uid}\n")

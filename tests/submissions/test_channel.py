@@ -322,6 +322,7 @@ class FakeProcess:
         pass_fds: Sequence[int],
         output_fd: int,
         mode: str | None = None,
+        cpu: int | None = None,
     ) -> None:
         spec = worker_args[list(worker_args).index("--channel") + 1]
         self.worker = FakeWorker(",".join(str(os.dup(int(fd))) for fd in spec.split(",")))

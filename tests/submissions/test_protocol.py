@@ -6,7 +6,7 @@ import struct
 
 import numpy as np
 import pytest
-from hypothesis import given
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
@@ -219,3 +219,46 @@ def test_a_frame_with_bytes_after_it_says_both_lengths() -> None:
         ProtocolError, match=f"^a frame of {len(data)} bytes in {len(data) + 3} bytes$"
     ):
         decode_frame(data + b"xyz")
+
+
+def _outcome(decode: object, data: bytes, max_frame: int, trailing: bool) -> object:
+    """What a decoder makes of ``data``: the frame's fields, or the refusal's type and text."""
+    try:
+        frame = decode(data, max_frame, trailing=trailing)  # type: ignore[operator]
+    except ProtocolError as err:
+        return (type(err).__name__, str(err))
+    return (frame.kind, frame.seq, frame.array.dtype.str, frame.array.shape, frame.array.tobytes())
+
+
+@given(
+    arr=hnp.arrays(
+        dtype=st.sampled_from(DTYPES),
+        shape=hnp.array_shapes(min_dims=0, max_dims=2, min_side=0, max_side=6),
+    ),
+    flips=st.lists(st.tuples(st.integers(0, 40), st.integers(0, 255)), max_size=3),
+    cut=st.integers(-8, 8),
+    max_frame=st.sampled_from([MAX_FRAME, 16, 0]),
+    trailing=st.booleans(),
+)
+@settings(max_examples=400)
+@example(np.zeros(3, np.float32), [], 4, MAX_FRAME, False)  # padded, not allowed
+@example(np.zeros(3, np.float32), [], 4, MAX_FRAME, True)  # padded, allowed
+@example(np.zeros(3, np.float32), [], -1, MAX_FRAME, True)  # cut short
+@example(np.zeros(5, np.float32), [], 0, 16, False)  # over the cap
+@example(np.zeros(3, np.float32), [(16, 4)], 0, MAX_FRAME, False)  # axis and bytes disagree
+def test_the_one_axis_shortcut_decodes_exactly_as_the_general_path(
+    arr: np.ndarray, flips: list[tuple[int, int]], cut: int, max_frame: int, trailing: bool
+) -> None:
+    # decode_frame takes a shortcut for one-axis frames (observations, actions, text); on
+    # any frame, valid, corrupted, cut short or padded, it must decide as the step-by-step
+    # path does: the same frame, or the same refusal.
+    from submissions.protocol import _decode_general
+
+    data = bytearray(encode(Kind.ACT, arr, 7))
+    for at, value in flips:
+        if at < len(data):
+            data[at] = value
+    data = data[: len(data) + cut] if cut < 0 else data + bytes(cut)
+    fast = _outcome(decode_frame, bytes(data), max_frame, trailing)
+    general = _outcome(_decode_general, bytes(data), max_frame, trailing)
+    assert fast == general
