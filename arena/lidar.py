@@ -58,6 +58,9 @@ class Lidar:
         self.angles: FloatArray = self.first + self.step * np.arange(n_rays, dtype=np.float64)
         self.dirs: FloatArray = np.stack([np.cos(self.angles), np.sin(self.angles)], axis=1)
         self._shifts = np.array([0.0, -2 * math.pi]) - self.first  # rad, as the first ray
+        # A segment's start angle (-2π … π) less the first ray's lies within one turn of 0
+        # unless the field of view is (nearly) a full turn: then a sum replaces np.mod.
+        self._below_turn = -self.first < 0.9 * math.pi
         spacing = float(np.mean(np.linalg.norm(np.diff(walls.left, axis=0), axis=1)))
         self.half_window = math.ceil(1.5 * max_range / spacing) + 1
         # Per wall point k, both walls' segments k -> k+1 as [x0, y0, x1, y1] (left, right):
@@ -81,13 +84,21 @@ class Lidar:
         self._dir_x: FloatArray = self.dirs[:, 0].copy()
         self._dir_y: FloatArray = self.dirs[:, 1].copy()
         self._layouts: dict[tuple[int, int], _Layout] = {}
-        self._shift_tile: FloatArray = self._shifts.copy()
+        self._halves_tile: IntArray = np.arange(0)
+        self._shift_tile: FloatArray = np.empty((0, 2))
 
-    def _shift_pairs(self, k: int) -> FloatArray:
-        """(2k,) rad: the two shifts of :attr:`_shifts` once per segment (grown on demand)."""
+    def _shift_rows(self, k: int) -> FloatArray:
+        """(2k, 2) rad: rows [shift 0, shift 0], [shift 1, shift 1] of :attr:`_shifts`
+        once per segment (grown on demand)."""
         if len(self._shift_tile) < 2 * k:
-            self._shift_tile = np.tile(self._shifts, 2 * k)
+            self._shift_tile = np.tile(self._shifts.repeat(2).reshape(2, 2), (2 * k, 1))
         return self._shift_tile[: 2 * k]
+
+    def _halves(self, k: int) -> IntArray:
+        """(k,) int: 0, 0, 1, 1, 2, 2, … (each pair's segment; grown on demand)."""
+        if len(self._halves_tile) < k:
+            self._halves_tile = np.arange(2 * k) >> 1
+        return self._halves_tile[:k]
 
     def _layout(self, n: int, n_edges: int) -> _Layout:
         """Constant index arrays for ``n`` scanners and ``n_edges`` car edges (built once)."""
@@ -105,7 +116,8 @@ class Lidar:
             if len(self._dir_x) < n * self.n_rays:
                 self._dir_x = np.tile(self.dirs[:, 0], n)
                 self._dir_y = np.tile(self.dirs[:, 1], n)
-            self._layouts[key] = _Layout(n_seg=n_seg, usable=usable, reach=reach)
+            ray_base = (np.arange(n * n_seg) // n_seg) * self.n_rays
+            self._layouts[key] = _Layout(n_seg, usable, reach, ray_base)
         return self._layouts[key]
 
     def scan(
@@ -142,40 +154,47 @@ class Lidar:
     def _cast(self, poses: FloatArray, seg: FloatArray, layout: _Layout) -> FloatArray:
         """Nearest hit per ray; ``seg`` (n, S, 4) m = start x, start y, end x, end y."""
         n, m = seg.shape[:2]
-        # Each car's x, y and heading's cos and sin repeated over its m segments: numpy
-        # buffers a broadcast operand, which costs more than this one repeat on these sizes.
+        # Each car's x, y and heading's cos and sin repeated over both ends of its m
+        # segments: numpy buffers a broadcast operand, which costs more than this one repeat
+        # on these sizes.
         frame = np.concatenate(
             [poses[:, :2].T, np.cos(poses[None, :, 2]), np.sin(poses[None, :, 2])]
         )
-        x, y, cos, sin = frame.repeat(m, axis=1).reshape(4, n, m)
-        # Segment ends in each car's frame.
-        dx, dy = seg[..., 0] - x, seg[..., 1] - y
-        ax, ay = cos * dx + sin * dy, cos * dy - sin * dx
-        dx, dy = seg[..., 2] - x, seg[..., 3] - y
-        bx, by = cos * dx + sin * dy, cos * dy - sin * dx
+        x, y, cos, sin = frame.repeat(2 * m, axis=1).reshape(4, n, m, 2)
+        # Both ends of every segment (last axis: start, end) in each car's frame at once.
+        pts = seg.reshape(n, m, 2, 2)
+        dx, dy = pts[..., 0] - x, pts[..., 1] - y
+        ex, ey = cos * dx + sin * dy, cos * dy - sin * dx
         # Only the segments within reach go on (flat (car, segment) indices): their number,
         # not the window's, sets the cost of what follows.
-        near = layout.usable & (np.minimum(ax * ax + ay * ay, bx * bx + by * by) < layout.reach)
+        r2 = ex * ex + ey * ey
+        near = layout.usable & (np.minimum(r2[..., 0], r2[..., 1]) < layout.reach)
         keep = near.ravel().nonzero()[0]
         if len(keep) == 0:
             out = np.empty(n * self.n_rays)
             out.fill(self.max_range)
             return out.reshape(n, self.n_rays)
-        ax, ay, bx, by = ax.ravel()[keep], ay.ravel()[keep], bx.ravel()[keep], by.ravel()[keep]
+        ex, ey = ex.reshape(-1, 2).take(keep, axis=0), ey.reshape(-1, 2).take(keep, axis=0)
+        ax, bx, ay, by = ex[:, 0], ex[:, 1], ey[:, 0], ey[:, 1]
         span = np.arctan2(ax * by - ay * bx, ax * bx + ay * by)  # signed angle a → b
-        # Interval of angles the segment covers, rotated to start at or after the first ray;
-        # its part beyond one turn wraps round to the first rays (the second shift below).
-        lo = np.arctan2(ay, ax) + np.minimum(span, 0.0)
-        lo = self.first + np.mod(lo - self.first, 2 * math.pi)
-        hi = lo + np.abs(span)
-        # Both shifts of each interval, flat (2K,): [shift 0, shift 1] per segment.
-        shifts = self._shift_pairs(len(lo))
-        k_lo = np.ceil((lo.repeat(2) + shifts) / self.step - 1e-9)
-        k_hi = np.minimum(np.floor((hi.repeat(2) + shifts) / self.step + 1e-9), self.n_rays - 1)
-        k_lo = np.maximum(k_lo, 0).astype(np.int64)
+        # Interval [lo, hi] of angles the segment covers, rotated to start at or after the
+        # first ray; its part beyond one turn wraps round to the first rays (shift 1 below).
+        bounds = np.empty((len(keep), 2))
+        rel = np.arctan2(ay, ax) + np.minimum(span, 0.0) - self.first
+        if self._below_turn:  # rel in (-2π, 2π): mod 2π adds a turn to the negative ones
+            rel += (rel < 0.0) * (2 * math.pi)  # (-0.0 + 0.0 is +0.0, as mod gives)
+        else:
+            rel = np.mod(rel, 2 * math.pi)
+        lo = np.add(self.first, rel, out=bounds[:, 0])
+        np.add(lo, np.abs(span), out=bounds[:, 1])
+        # Both shifts of both ends at once: (2K, [lo, hi]) in ray steps, rows [shift 0,
+        # shift 1] per segment.
+        steps = (bounds.repeat(2, axis=0) + self._shift_rows(len(keep))) / self.step
+        k_lo = np.maximum(np.ceil(steps[:, 0] - 1e-9), 0).astype(np.int64)
+        k_hi = np.minimum(np.floor(steps[:, 1] + 1e-9), self.n_rays - 1).astype(np.int64)
         # Array methods, not numpy's functions: the same results without the dispatch cost,
         # which dominates on arrays this small.
-        counts = np.maximum(k_hi.astype(np.int64) - k_lo + 1, 0)
+        counts = np.maximum(k_hi - k_lo + 1, 0)
         out = np.empty(n * self.n_rays)
         out.fill(self.max_range)
         ends = counts.cumsum()
@@ -183,9 +202,9 @@ class Lidar:
         if total == 0:
             return out.reshape(n, self.n_rays)
         # Every (segment, ray) pair as a flat output index car · n_rays + ray, and its segment.
-        first_ray = ((keep // layout.n_seg) * self.n_rays).repeat(2) + k_lo - (ends - counts)
+        first_ray = layout.ray_base.take(keep).repeat(2) + k_lo - (ends - counts)
         flat = first_ray.repeat(counts) + np.arange(total)
-        pair_seg = (np.arange(2 * len(keep)) >> 1).repeat(counts)
+        pair_seg = self._halves(2 * len(keep)).repeat(counts)
         pax, pay = ax[pair_seg], ay[pair_seg]
         pex, pey = bx[pair_seg] - pax, by[pair_seg] - pay
         ux, uy = self._dir_x[flat], self._dir_y[flat]
@@ -209,8 +228,11 @@ class _Layout:
         usable: (n, n_seg) False for a scanner's own edges.
         reach: (n, n_seg) m², squared distance from a scanner beyond which both ends of a
             segment put all of it out of range.
+        ray_base: (n · n_seg,) int, per flat (scanner, segment) index the scanner's first
+            flat ray index (scanner · n_rays).
     """
 
     n_seg: int
     usable: NDArray[np.bool_]
     reach: FloatArray
+    ray_base: IntArray
