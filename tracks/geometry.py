@@ -15,6 +15,7 @@ a bend do not collapse onto a vertex.
 from __future__ import annotations
 
 import math
+from bisect import bisect_right
 from dataclasses import dataclass
 from functools import cached_property
 from typing import TYPE_CHECKING, Literal
@@ -500,11 +501,41 @@ class Track:
 
     def widths_at(self, s: ArrayLike) -> tuple[FloatArray, FloatArray]:
         """Left and right half-widths at progress ``s`` (linear between points), m."""
+        if (  # the env's cars every step
+            isinstance(s, np.ndarray)
+            and s.dtype == np.float64
+            and s.ndim == 1
+            and len(s) <= _PROJECT_FEW
+        ):
+            return self._widths_few(s.tolist())
         i, t = self._locate(s)
         j = (i + 1) % self.n_points
         left = (1 - t) * self.width_left[i] + t * self.width_left[j]
         right = (1 - t) * self.width_right[i] + t * self.width_right[j]
         return left, right
+
+    def _widths_few(self, values: list[float]) -> tuple[FloatArray, FloatArray]:
+        """:meth:`widths_at` of a few progress values in Python floats: the same operations
+        (``%`` is ``np.mod``'s remainder, ``bisect_right`` the right-side
+        ``searchsorted``), so the same bits, without ~15 numpy calls."""
+        starts, lengths = self._seg_rows[:2]
+        left_w, right_w = self._width_rows
+        n, length = self.n_points, self.length
+        left: list[float] = []
+        right: list[float] = []
+        for value in values:
+            sw = value % length
+            i = bisect_right(starts, sw) - 1
+            t = (sw - starts[i]) / lengths[i]
+            j = i + 1 if i + 1 < n else 0
+            left.append((1 - t) * left_w[i] + t * left_w[j])
+            right.append((1 - t) * right_w[i] + t * right_w[j])
+        return np.array(left), np.array(right)
+
+    @cached_property
+    def _width_rows(self) -> tuple[list[float], list[float]]:
+        """The half-widths as Python lists (for :meth:`_widths_few`)."""
+        return self.width_left.tolist(), self.width_right.tolist()
 
     def heading_at(self, s: ArrayLike) -> FloatArray:
         """Heading of the centre line at progress ``s``, rad."""
@@ -655,8 +686,8 @@ class Track:
         p = _as_points(points)
         m = len(p)
         if m <= _PROJECT_FEW:  # the env's cars every step
-            seg, tb, db = self._project_few(p)
-        elif m <= _PROJECT_BLOCK:  # one block: no copies
+            return self._project_few(p)
+        if m <= _PROJECT_BLOCK:  # one block: no copies
             seg, tb, db = self._project_block(p)
         else:
             seg = np.empty(m, dtype=np.int64)
@@ -665,6 +696,10 @@ class Track:
             for lo in range(0, m, _PROJECT_BLOCK):
                 hi = min(lo + _PROJECT_BLOCK, m)
                 seg[lo:hi], tb[lo:hi], db[lo:hi] = self._project_block(p[lo:hi])
+        return self._projection(seg, tb, db)
+
+    def _projection(self, seg: IntArray, tb: FloatArray, db: FloatArray) -> Projection:
+        """The projection onto segments ``seg`` (M,) at fractions ``tb`` with offsets ``db``."""
         s = self.wrap_s(self.s[seg] + tb * self.segment_lengths[seg])
         tan = self.tangents.take(seg, axis=0) + tb[:, None] * self._tangent_steps.take(seg, axis=0)
         heading = np.arctan2(tan[:, 1], tan[:, 0])
@@ -726,18 +761,19 @@ class Track:
             db[none] = np.einsum("mk,mk->m", p[none] - self.centre[v], self.normals[v])
         return seg, tb, db
 
-    def _project_few(self, p: FloatArray) -> tuple[IntArray, FloatArray, FloatArray]:
-        """:meth:`_project_block` for a few points, in Python floats.
+    def _project_few(self, p: FloatArray) -> Projection:
+        """:meth:`project` of a few points, in Python floats.
 
         The same candidates, the same operations in the same order (IEEE ``+ - * / sqrt``
-        round alike in numpy and Python) and the same first-minimum choice give the very
-        same bits (a test holds them equal). What the block handles by its special rules —
-        a point with no frame solution, a degenerate frame, a NaN — sends the whole call to
-        the block.
+        round alike in numpy and Python, and Python's float ``%`` is ``np.mod``'s
+        remainder) and the same first-minimum choice give the very same bits (a test holds
+        them equal); only the heading's ``arctan2`` stays numpy's. What the block handles by
+        its special rules — a point with no frame solution, a degenerate frame, a NaN —
+        sends the whole call to the block.
         """
         n = self.n_points
         if n < 3:
-            return self._project_block(p)
+            return self._projection(*self._project_block(p))
         rows, sqrt, inf = self._frame_rows, math.sqrt, math.inf
         seg: list[int] = []
         tb: list[float] = []
@@ -770,19 +806,49 @@ class Track:
                 nty = t * dny + ny
                 norm2 = ntx * ntx + nty * nty
                 if norm2 == 0.0:  # a degenerate frame (x / 0)
-                    return self._project_block(p)
+                    return self._projection(*self._project_block(p))
                 d = ((qx - t * ex) * ntx + (qy - t * ey) * nty) / norm2
                 cost = abs(d) if disc >= 0 and -1e-9 <= t <= 1 + 1e-9 else inf
                 if not cost <= inf:  # NaN, which the block's argmin would pick
-                    return self._project_block(p)
+                    return self._projection(*self._project_block(p))
                 if cost < best_cost:  # strictly: the first minimum, as argmin
                     best, best_cost, best_t, best_d = j, cost, t, d
             if best < 0:  # no frame solution: the block's nearest-vertex rule
-                return self._project_block(p)
+                return self._projection(*self._project_block(p))
             seg.append(best)
             tb.append(min(max(best_t, 0.0), 1.0))
             db.append(best_d)
-        return np.array(seg, dtype=np.int64), np.array(tb), np.array(db)
+        # :meth:`_projection`'s arithmetic per point: s wrapped into the lap, the tangent
+        # interpolated along the segment.
+        starts, lengths, tangents, steps = self._seg_rows
+        length = self.length
+        s_out: list[float] = []
+        tan_x: list[float] = []
+        tan_y: list[float] = []
+        for j, t in zip(seg, tb, strict=True):
+            s_out.append((starts[j] + t * lengths[j]) % length)
+            (tx, ty), (sx, sy) = tangents[j], steps[j]
+            tan_x.append(tx + t * sx)
+            tan_y.append(ty + t * sy)
+        return Projection(
+            s=np.array(s_out),
+            d=np.array(db),
+            heading=np.arctan2(np.array(tan_y), np.array(tan_x)),
+            segment=np.array(seg, dtype=np.int64),
+        )
+
+    @cached_property
+    def _seg_rows(
+        self,
+    ) -> tuple[list[float], list[float], list[list[float]], list[list[float]]]:
+        """Per segment as Python lists: start s m, length m, unit tangent and its change
+        along the segment (for :meth:`_project_few` and :meth:`widths_at`)."""
+        return (
+            self.s.tolist(),
+            self.segment_lengths.tolist(),
+            self.tangents.tolist(),
+            self._tangent_steps.tolist(),
+        )
 
     def to_frenet(self, points: ArrayLike) -> FloatArray:
         """Cartesian (M, 2) [x m, y m] → Frenet (M, 2) [s m, d m]."""

@@ -136,6 +136,12 @@ def assert_same_bits(a: tuple[FloatArray, ...], b: tuple[FloatArray, ...]) -> No
         assert x.tobytes() == y.tobytes()
 
 
+def few_and_block(track: Track, pts: FloatArray) -> tuple[tuple[FloatArray, ...], ...]:
+    """The few-point projection's fields and the block path's (numpy throughout)."""
+    few, block = track._project_few(pts), track._projection(*track._project_block(pts))
+    return tuple((p.segment, p.s, p.d, p.heading) for p in (few, block))
+
+
 @pytest.mark.parametrize("name", ["oval", "monza", "hairpins", "chicanes"])
 def test_projection_of_a_few_points_is_the_block_projection_bit_for_bit(name: str) -> None:
     # The env projects its cars (<= 16) in Python floats; a race must not depend on which
@@ -149,9 +155,25 @@ def test_projection_of_a_few_points_is_the_block_projection_bit_for_bit(name: st
             pts = rng.uniform([xmin - 10, ymin - 10], [xmax + 10, ymax + 10], (m, 2))
         else:
             pts = track.centre[rng.integers(0, track.n_points, m)] + rng.normal(0, 0.7, (m, 2))
-        assert_same_bits(track._project_few(pts), track._project_block(pts))
+        assert_same_bits(*few_and_block(track, pts))
         proj = track.project(pts)
         assert proj.s.shape == proj.d.shape == proj.heading.shape == proj.segment.shape == (m,)
+
+
+@pytest.mark.parametrize("name", ["oval", "monza", "hairpins"])
+def test_widths_at_a_few_points_are_the_array_path_bit_for_bit(name: str) -> None:
+    # The env asks the widths at its cars' s (<= 16 values) in Python floats: the same bits
+    # as numpy's path (many values), in the lap, beyond it, negative, at the vertices, NaN.
+    track = load_track(name)
+    rng = np.random.default_rng(3)
+    special = np.array([0.0, -0.0, track.length, -1e-300, track.s[1], track.s[-1], np.nan])
+    many = np.concatenate(
+        [rng.uniform(-2 * track.length, 3 * track.length, 2000), track.s, special]
+    )
+    expected = track.widths_at(many)  # > 16 values: numpy's path
+    for lo in range(0, len(many), 16):
+        few = track.widths_at(many[lo : lo + 16])
+        assert_same_bits(few, tuple(side[lo : lo + 16] for side in expected))
 
 
 @pytest.mark.parametrize("name", ["oval", "monza", "hairpins", "bean"])
@@ -188,7 +210,7 @@ def test_projection_of_a_few_points_without_a_frame_solution_uses_the_vertex() -
     assert t[0] == 0.0  # the vertex rule ran
     np.testing.assert_allclose(d, (pts[0] - notch.centre[seg[0]]) @ notch.normals[seg[0]])
     for k in range(1, 4):
-        assert_same_bits(notch._project_few(pts[:k]), notch._project_block(pts[:k]))
+        assert_same_bits(*few_and_block(notch, pts[:k]))
 
 
 def test_signed_distance_and_is_inside(polyline: Track) -> None:
