@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from arena.batch.xp import NUMPY, Array, NumpyOps
+from arena.batch.xp import NUMPY, Array, NumpyOps, count_true
 from arena.rewards import RACING_TERMS, RewardWeights, collision_blame, race_positions, racing_terms
 from arena.sim import CarParams, SimError
 from tracks import Track
@@ -290,20 +290,23 @@ def episode_step(
     # numpy float64 takes np.where as it is (ops.where only keeps float32 arrays float32).
     where = np.where if _plain_numpy(ops) else ops.where
     active = st.active
+    # The usual step on one race: every car racing, so a mask by ``active`` is the array
+    # itself (the same values below in fewer operations).
+    everyone = isinstance(active, np.ndarray) and count_true(active) == active.size
     steps = st.steps + 1
     now = ops.cast(steps, ops.float) / rules.control_hz  # exact: k / 20, not k · 0.05
     now_n = now[:, None]
 
     ds = rules.delta_s(ops, sensed.s, st.s)
     cut = ops.abs(ds) > CUT_JUMP
-    progress = where(active & ~cut, ds, 0.0)
+    progress = where(~cut if everyone else active & ~cut, ds, 0.0)
     race_progress = st.race_progress + progress
 
     # Ordered gates, exactly tracks.LapCounter (only racing cars count).
     gate = rules.gate_s[st.next_gate]
     before = rules.delta_s(ops, gate, st.s)
     reached = (before > 0) & (before <= ds)  # the next gate lies within this step's move
-    if isinstance(reached, np.ndarray) and not np.count_nonzero(reached):
+    if isinstance(reached, np.ndarray) and not count_true(reached):
         # The common case on one race (a car passes a gate every second or so): nothing
         # crossed, the same values as below without the work.
         lap_done = reached
@@ -327,7 +330,7 @@ def episode_step(
     # DeepRacer's off-track rule: all four wheels off the road.
     reach = ops.abs(sensed.d) + rules.wheel_reach  # m: no wheel is farther off the centre
     clear = (reach <= sensed.left) & (reach <= sensed.right)
-    if isinstance(clear, np.ndarray) and np.count_nonzero(clear) == clear.size:
+    if isinstance(clear, np.ndarray) and count_true(clear) == clear.size:
         # The common case on one race: every car's wheels are all on the road, whatever its
         # heading; the same values as below, without the work.
         off_track = np.zeros(clear.shape, dtype=bool)
@@ -342,8 +345,11 @@ def episode_step(
         all_wheels_on = ops.all(on, axis=-1)
         off_time = where(off_track, st.off_time + rules.dt, 0.0)
 
-    contact = sensed.touching & active[..., :, None] & active[..., None, :]
-    if isinstance(contact, np.ndarray) and not np.count_nonzero(contact):
+    if everyone:
+        contact = sensed.touching.astype(bool)  # a copy, as the masked one below
+    else:
+        contact = sensed.touching & active[..., :, None] & active[..., None, :]
+    if isinstance(contact, np.ndarray) and not count_true(contact):
         # The common case on one race, and the same result without the work.
         at_fault, closing = contact, ops.zeros(contact.shape)
     else:
@@ -353,21 +359,16 @@ def episode_step(
     # A collision counts once, when the contact starts: a long push is one incident.
     new_contact = contact & ~st.contact
 
-    newly_finished = active & (laps_completed >= rules.laps)
-    nobody_finished = isinstance(newly_finished, np.ndarray) and not np.count_nonzero(
-        newly_finished
-    )
+    reached_laps = laps_completed >= rules.laps
+    newly_finished = reached_laps if everyone else active & reached_laps
+    nobody_finished = isinstance(newly_finished, np.ndarray) and not count_true(newly_finished)
     if nobody_finished:  # the usual step: the same values as below, without the work
         finished, finish_time, still = st.finished, st.finish_time, active
     else:
         finished = st.finished | newly_finished
         finish_time = where(newly_finished, now_n, st.finish_time)
         still = active & ~newly_finished
-    if (
-        isinstance(finished, np.ndarray)
-        and not np.count_nonzero(finished)
-        and np.count_nonzero(active) == active.size
-    ):
+    if everyone and not count_true(finished):
         # Everyone still racing, nobody finished: the key below is the race progress.
         positions = race_positions(race_progress, ops)
     else:
@@ -376,7 +377,7 @@ def episode_step(
         top = 4.0 * rules.race_distance + 1000.0
         rank_key = where(finished, top - finish_time, race_progress)
         positions = race_positions(where(active | finished, rank_key, -top), ops)
-    gained = where(active, st.positions - positions, 0)
+    gained = st.positions - positions if everyone else where(active, st.positions - positions, 0)
 
     w = rules.window
     slot = ops.mod(steps, w)
@@ -390,11 +391,11 @@ def episode_step(
         onehot = (ops.arange(w)[None, :] == slot[:, None])[..., None]
         history = where(onehot, race_progress[:, None, :], st.history)
         moved = race_progress - ops.take_along(history, oldest.reshape(-1, 1, 1), 1)[:, 0, :]
-    stuck = still & (steps >= w)[:, None] & (moved < STUCK_DISTANCE)
-    lost = still & (off_time > rules.off_track_limit)
-    flipped = (
-        still & (sensed.upright < FLIP_UPRIGHT) if sensed.upright is not None else still & False
-    )
+    stuck = (steps >= w)[:, None] & (moved < STUCK_DISTANCE)
+    lost = off_time > rules.off_track_limit
+    flipped = sensed.upright < FLIP_UPRIGHT if sensed.upright is not None else still & False
+    if not (everyone and nobody_finished):  # else ``still`` is everyone
+        stuck, lost, flipped = still & stuck, still & lost, still & flipped
     terminated = stuck | lost | flipped
     if not nobody_finished:
         terminated = newly_finished | terminated
@@ -403,9 +404,11 @@ def episode_step(
         hit = sensed.wall | ops.any(contact, axis=-1) if rules.end_on_crash else sensed.wall
         crashed = still & hit
         terminated = terminated | crashed
-    truncated = active & ~terminated & (steps >= rules.max_cycles)[:, None]
+    truncated = ~terminated & (steps >= rules.max_cycles)[:, None]
+    if not everyone:
+        truncated = active & truncated
     done = terminated | truncated
-    if isinstance(done, np.ndarray) and not np.count_nonzero(done):
+    if isinstance(done, np.ndarray) and not count_true(done):
         dnf = np.zeros(done.shape, dtype=np.int64)  # the common case on one race
     else:
         reason = where(stuck, STUCK, 0)
@@ -414,7 +417,7 @@ def episode_step(
         reason = where(lost, OFF_TRACK, reason)
         dnf = where(flipped, FLIPPED, reason) + where(truncated, TIME_LIMIT, 0)
 
-    wall = sensed.wall & active
+    wall = sensed.wall.astype(bool) if everyone else sensed.wall & active  # a copy either way
     terms = racing_terms(
         progress, off_track, wall, at_fault, closing, gained, rules.dt, rules.weights, ops
     )

@@ -28,6 +28,7 @@ from numpy.typing import NDArray
 from pettingzoo import ParallelEnv
 
 from arena.actions import DiscreteActions
+from arena.batch.xp import count_true
 from arena.cars import car_params as resolve_car
 from arena.core import (
     DNF_REASONS,
@@ -467,15 +468,15 @@ class RaceEpisodeEnv(ParallelEnv):
         assert out is not None
         # Events are rare: each bookkeeping line is skipped (one cheap test) when none happened.
         lap_done = out.lap_done[0]
-        if np.count_nonzero(lap_done):
+        if count_true(lap_done):
             for i in np.flatnonzero(lap_done):
                 self.lap_times[i].append(round(float(out.lap_time[0, i]), 10))
         new_contact, at_fault = out.new_contact[0], out.at_fault[0]
-        if np.count_nonzero(new_contact):
+        if count_true(new_contact):
             self.collision_count += new_contact.any(axis=1)
             self.at_fault_count += (at_fault & new_contact).any(axis=1)
         off_track = out.off_track[0]
-        if np.count_nonzero(off_track):
+        if count_true(off_track):
             self.off_track_count += off_track & (self.off_time <= self.dt)
         dnf = out.dnf[0]
         if np.count_nonzero(dnf):
@@ -495,7 +496,7 @@ class RaceEpisodeEnv(ParallelEnv):
         term_lists = {name: v.tolist() for name, v in terms.items()}
         contact, closing = out.contact[0], out.closing[0]
         touching: list[bool] = (
-            contact.any(axis=1).tolist() if np.count_nonzero(contact) else [False] * len(contact)
+            contact.any(axis=1).tolist() if count_true(contact) else [False] * len(contact)
         )
         cars = self._car_lists(frame)
         for agent in racing:
@@ -531,7 +532,7 @@ class RaceEpisodeEnv(ParallelEnv):
                     result_term[nat] = term_list[k]
                     result_trunc[nat] = trunc_list[k]
         done = out.terminated[0] | out.truncated[0]
-        if np.count_nonzero(done):
+        if count_true(done):
             for i in np.flatnonzero(done):
                 self._pipeline_park(int(i))
         if not self.park_finished:

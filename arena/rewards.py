@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from arena.batch.xp import NUMPY, NumpyOps
+from arena.batch.xp import NUMPY, NumpyOps, count_true
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -96,10 +96,19 @@ def racing_terms(
     ops: NumpyOps = NUMPY,
 ) -> dict[str, FloatArray]:
     """Each racing reward term (..., n) for one control step of ``dt`` seconds."""
+    if (
+        isinstance(at_fault, np.ndarray)
+        and closing.dtype == ops.float == np.float64
+        and not count_true(at_fault)
+    ):
+        # Nobody to blame (the usual step): each sum is of +0.0 only, so +0.0.
+        blamed = ops.zeros(at_fault.shape[:-1])
+    else:
+        blamed = ops.sum(ops.where(at_fault, closing, 0.0), axis=-1)
     return {
         "progress": w.progress * progress,
         "off_track": -w.off_track * dt * ops.cast(off_track, ops.float),
         "wall": -w.wall * dt * ops.cast(wall, ops.float),
-        "collision": -w.collision * ops.sum(ops.where(at_fault, closing, 0.0), axis=-1),
+        "collision": -w.collision * blamed,
         "overtake": w.overtake * ops.cast(places_gained, ops.float),
     }
