@@ -16,6 +16,11 @@ is here, as pure functions of ``(B, N)`` arrays through the :mod:`arena.batch.xp
   ``direction``), one parser for both PettingZoo envs;
 * :func:`global_state`: PettingZoo's ``state()`` features.
 
+One numpy race (the pybullet env) takes a shortcut on the usual, quiet step — nobody passes
+a gate, nears a road edge, touches another car or is done —: the same arithmetic in Python
+floats per car (``_quiet_step``, held bit for bit to the array path by
+``tests/arena/test_step_shortcuts.py``), which declines every other step.
+
 :class:`arena.episode.RaceEpisodeEnv` (the PettingZoo side: agents, spaces, infos, model
 uncertainty, ``park_finished``) drives either simulator through these functions.
 """
@@ -287,6 +292,150 @@ def episode_step(
     Cars that are done (terminated or truncated) this step leave the race in the returned
     state (``active`` False); the outcome's arrays describe the step itself.
     """
+    if _plain_numpy(ops) and isinstance(st.s, np.ndarray) and st.s.shape[0] == 1:
+        quiet = _quiet_step(rules, st, sensed)
+        if quiet is not None:
+            return quiet
+    return _rules_step(ops, rules, st, sensed)
+
+
+def _quiet_step(
+    rules: EpisodeRules, st: EpisodeState, sensed: Sensed
+) -> tuple[EpisodeState, Outcome] | None:
+    """:func:`_rules_step` of one numpy race on a quiet step, in Python floats per car.
+
+    Quiet: every car racing, and none passes its next gate, has a wheel near a road edge,
+    touches another car, finishes, stalls, flips, crashes or runs out of steps — the usual
+    step. Then most of the rules' outcome is known (no lap, no contact, nobody done) and
+    the rest is a few operations per car, the same IEEE operations in the same order as
+    the array path's (Python's float ``%`` is ``np.mod``'s remainder, a stable sort the
+    stable argsort), so the very same bits (a test holds the two paths equal) without its
+    ~80 numpy calls on (1, N) arrays. None, when the step is not quiet or a value is NaN:
+    then the array path decides.
+    """
+    active, touching, wall = st.active, sensed.touching, sensed.wall
+    if not active.dtype == touching.dtype == wall.dtype == np.bool_:
+        return None
+    n = active.shape[1]
+    if count_true(active) != n or count_true(touching):
+        return None
+    steps = st.steps + 1
+    step = int(steps[0])
+    w = rules.window
+    if step >= rules.max_cycles or rules.off_track_limit < 0.0:  # truncated; off too long
+        return None
+    if (rules.end_on_crash or rules.end_on_wall) and count_true(wall):
+        return None
+    length = rules.length
+    half = 0.5 * length
+    laps_done = rules.laps
+    s_now, s_prev = sensed.s[0].tolist(), st.s[0].tolist()
+    gates = rules.gate_s[st.next_gate[0]].tolist()
+    old_progress = st.race_progress[0].tolist()
+    progress: list[float] = []
+    race_progress: list[float] = []
+    for s_to, s_from, gate, before_progress, laps in zip(
+        s_now, s_prev, gates, old_progress, st.laps[0].tolist(), strict=True
+    ):
+        ds = (s_to - s_from + half) % length - half  # EpisodeRules.delta_s
+        ahead = (gate - s_from + half) % length - half
+        if ahead > 0 and ahead <= ds:  # the next gate lies within this step's move
+            return None
+        if max(laps, 0) >= laps_done:  # a finisher (never one still racing)
+            return None
+        moved = 0.0 if abs(ds) > CUT_JUMP else ds
+        progress.append(moved)
+        race_progress.append(before_progress + moved)
+    reach = rules.wheel_reach
+    for d, left, right in zip(
+        sensed.d[0].tolist(), sensed.left[0].tolist(), sensed.right[0].tolist(), strict=True
+    ):
+        wheels = abs(d) + reach
+        if not (wheels <= left and wheels <= right):  # near an edge, or NaN
+            return None
+    if sensed.upright is not None and any(up < FLIP_UPRIGHT for up in sensed.upright[0].tolist()):
+        return None
+    if any(map(math.isnan, race_progress)):
+        return None
+    # Positions: the stable argsort of −progress (no NaN), inverted, 1-based.
+    behind = [-x for x in race_progress]
+    rank = [0] * n
+    for place, i in enumerate(sorted(range(n), key=behind.__getitem__)):
+        rank[i] = place + 1
+    progress_row = np.array([race_progress])
+    history = st.history.copy()
+    history[0, step % w] = progress_row[0]
+    if step >= w:
+        oldest = history[0, (step + 1) % w].tolist()
+        for now_at, then in zip(race_progress, oldest, strict=True):
+            if now_at - then < STUCK_DISTANCE:  # stuck
+                return None
+    # racing_terms' products per car (nothing off track, to blame or done: zeros there),
+    # then their sum in RACING_TERMS order; one table of rows (1, N).
+    wt = rules.weights
+    off_term, wall_scale = -wt.off_track * rules.dt * 0.0, -wt.wall * rules.dt
+    blame_term = -wt.collision * 0.0
+    progress_terms, wall_terms, overtake_terms, reward = [], [], [], []
+    for moved, on, before_rank, now_rank in zip(
+        progress, wall[0].tolist(), st.positions[0].tolist(), rank, strict=True
+    ):
+        progress_term = wt.progress * moved
+        wall_term = wall_scale * (1.0 if on else 0.0)
+        overtake_term = wt.overtake * float(before_rank - now_rank)
+        progress_terms.append(progress_term)
+        wall_terms.append(wall_term)
+        overtake_terms.append(overtake_term)
+        reward.append((((progress_term + off_term) + wall_term) + blame_term) + overtake_term)
+    off_terms, blame_terms = [off_term] * n, [blame_term] * n
+    table = np.array(
+        [progress_terms, off_terms, wall_terms, blame_terms, overtake_terms, reward, progress]
+    )
+    rows = [table[k : k + 1] for k in range(len(table))]
+    terms = dict(zip(RACING_TERMS, rows, strict=False))
+    none = np.zeros((1, n), dtype=bool)  # no lap, off-track car, termination or truncation
+    contact = np.zeros((1, n, n), dtype=bool)
+    new = EpisodeState(
+        s=sensed.s,
+        next_gate=st.next_gate,
+        laps=st.laps,
+        race_progress=progress_row,
+        positions=np.array([rank], dtype=np.int64),
+        active=active.copy(),
+        finished=st.finished,
+        finish_time=st.finish_time,
+        off_time=np.zeros((1, n)),
+        line_time=st.line_time,
+        last_lap=st.last_lap,
+        contact=contact,
+        history=history,
+        steps=steps,
+        grid_start=st.grid_start,
+    )
+    out = Outcome(
+        progress=rows[6],
+        lap_done=none,
+        lap_time=np.zeros((1, n)),
+        off_track=none,
+        all_wheels_on=~none,
+        wall=wall.copy(),
+        contact=contact,
+        new_contact=contact.copy(),
+        at_fault=contact,
+        closing=np.zeros((1, n, n)),
+        terms=terms,
+        reward=rows[5],
+        terminated=none,
+        truncated=none,
+        dnf=np.zeros((1, n), dtype=np.int64),
+        now=steps.astype(np.float64) / rules.control_hz,
+    )
+    return new, out
+
+
+def _rules_step(
+    ops: NumpyOps, rules: EpisodeRules, st: EpisodeState, sensed: Sensed
+) -> tuple[EpisodeState, Outcome]:
+    """:func:`episode_step` over arrays (any backend, any number of races)."""
     # numpy float64 takes np.where as it is (ops.where only keeps float32 arrays float32).
     where = np.where if _plain_numpy(ops) else ops.where
     active = st.active

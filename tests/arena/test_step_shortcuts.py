@@ -9,18 +9,32 @@ boundaries.
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+import sys
+from dataclasses import fields, replace
+from typing import Any
 
 import numpy as np
 import pytest
 
 from arena import parallel_env
 from arena.batch.xp import NUMPY
-from arena.core import EpisodeRules, Sensed, episode_start, episode_step
+from arena.core import (
+    EpisodeRules,
+    EpisodeState,
+    Outcome,
+    Sensed,
+    _quiet_step,
+    _rules_step,
+    episode_start,
+    episode_step,
+)
 from arena.lidar import Lidar
 from arena.sim import CLEARANCE_CAP, CLEARANCE_CELL, CarParams, Simulator
 from arena.walls import Clearance, Walls
+from tests.arena.conftest import pursuit_driver
 from tracks import load_track
+
+env_module = sys.modules["arena.env"]  # ``arena.env`` the attribute is the AEC constructor
 
 
 @pytest.mark.parametrize("name", ["oval", "hairpins"])
@@ -163,3 +177,117 @@ def test_float_actions_are_read_as_their_float64_values() -> None:
         assert steer.tolist() == [1.0] * 4 and throttle.tolist() == [-1.0] * 4
     finally:
         env.close()
+
+
+def assert_same_step(a: tuple[EpisodeState, Outcome], b: tuple[EpisodeState, Outcome]) -> None:
+    """Every array of the two steps' states and outcomes (and the terms, in order) alike."""
+    for x, y in zip(a, b, strict=True):
+        for field in fields(x):
+            u, v = getattr(x, field.name), getattr(y, field.name)
+            if isinstance(u, dict):
+                assert list(u) == list(v), field.name
+                pairs = list(zip(u.values(), v.values(), strict=True))
+            else:
+                pairs = [(u, v)]
+            for p, q in pairs:
+                assert p.dtype == q.dtype and p.shape == q.shape, field.name
+                assert p.tobytes() == q.tobytes(), field.name
+
+
+@pytest.mark.parametrize(
+    ("name", "n_cars", "kwargs", "noise"),
+    [
+        ("oval", 4, {"laps": 2}, 0.0),  # laps, overtakes, close racing
+        ("hairpins", 6, {"max_cycles": 150}, 0.8),  # walls, contacts, edges, truncation
+        ("chicanes", 3, {"stuck_time": 0.5, "off_track_limit": 0.2}, 1.5),  # stalls, DNFs
+        ("oval", 2, {"preset": "deepracer", "max_cycles": 120}, 0.6),  # ends on a crash
+    ],
+)
+def test_quiet_step_is_the_rules_step(
+    monkeypatch: pytest.MonkeyPatch, name: str, n_cars: int, kwargs: dict[str, Any], noise: float
+) -> None:
+    # Real races (pursuit drivers, some jostled): on every step the Python-float quiet step
+    # either declines or gives the array path's state and outcome bit for bit; both happen.
+    taken = []
+
+    def checked(ops: Any, rules: EpisodeRules, st: EpisodeState, sensed: Sensed) -> Any:
+        full = _rules_step(ops, rules, st, sensed)
+        quiet = _quiet_step(rules, st, sensed)
+        taken.append(quiet is not None)
+        if quiet is not None:
+            assert_same_step(quiet, full)
+        return full
+
+    monkeypatch.setattr(env_module, "episode_step", checked)
+    env = parallel_env(track=name, n_cars=n_cars, **kwargs)
+    drive = pursuit_driver(env)
+    rng = np.random.default_rng(4)
+    obs, _ = env.reset(seed=2)
+    for _ in range(400):
+        if not env.agents:
+            obs, _ = env.reset(seed=len(taken))
+        acts = {a: drive(obs[a]) + noise * rng.standard_normal(2).astype(np.float32) for a in obs}
+        obs, *_ = env.step(acts)
+    env.close()
+    assert any(taken) and not all(taken)
+
+
+def test_quiet_step_declines_what_it_cannot_decide() -> None:
+    # One quiet step of a real race, then each thing that makes a step not quiet, alone:
+    # the quiet step declines it or agrees with the array path bit for bit.
+    env = parallel_env(track="oval", n_cars=3)
+    env.reset(seed=0)
+    go = {a: np.array([0.0, 0.6], dtype=np.float32) for a in env.agents}
+    for _ in range(30):
+        env.step(go)
+    rules, st = env._rules, env._ep
+    frame = env._frame
+    assert frame is not None
+    s, d = frame.episode.s, frame.d[None]
+    left, right = (w[None] for w in env.track.widths_at(s[0]))
+    base = Sensed(
+        s=s + 0.05,
+        d=d,
+        heading=np.zeros((1, 3)),
+        yaw=np.zeros((1, 3)),
+        left=left,
+        right=right,
+        wall=np.zeros((1, 3), dtype=bool),
+        touching=np.zeros((1, 3, 3), dtype=bool),
+        upright=np.ones((1, 3)),
+        prev_poses=frame.poses[None],
+        prev_velocity=frame.velocity[None, :, :2],
+    )
+    gate = rules.gate_s[st.next_gate]
+    touching = np.zeros((1, 3, 3), dtype=bool)
+    touching[0, 0, 1] = touching[0, 1, 0] = True
+    variants = {
+        "quiet": {},
+        "gate": {"s": np.where([[True, False, False]], gate + 1e-9, s + 0.05)},
+        "lap jump": {"s": s + 4.0},  # a cut: no progress
+        "nan s": {"s": np.array([[np.nan, 1.0, 2.0]]) + 0 * s},
+        "edge": {"d": d + np.where([[False, True, False]], left, 0.0)},
+        "nan d": {"d": np.array([[0.0, np.nan, 0.0]])},
+        "touch": {"touching": touching},
+        "wall": {"wall": np.array([[False, False, True]])},
+        "flip": {"upright": np.array([[1.0, 0.1, 1.0]])},
+        "nan upright": {"upright": np.array([[1.0, np.nan, 0.1]])},
+    }
+    quiet_ones = 0
+    for crash in (False, True):
+        rules_now = replace(rules, end_on_crash=crash)
+        for label, change in variants.items():
+            sensed = replace(base, **change)
+            quiet = _quiet_step(rules_now, st, sensed)
+            if quiet is not None:
+                assert_same_step(quiet, _rules_step(NUMPY, rules_now, st, sensed))
+                quiet_ones += 1
+            else:
+                assert label != "quiet", label
+    for steps in (rules.max_cycles - 1, rules.window, rules.window - 1):  # limit, stuck test
+        later = replace(st, steps=np.array([steps]))
+        quiet = _quiet_step(rules, later, base)
+        if quiet is not None:
+            assert_same_step(quiet, _rules_step(NUMPY, rules, later, base))
+    assert quiet_ones >= 4
+    env.close()
