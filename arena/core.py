@@ -16,8 +16,8 @@ is here, as pure functions of ``(B, N)`` arrays through the :mod:`arena.batch.xp
   ``direction``), one parser for both PettingZoo envs;
 * :func:`global_state`: PettingZoo's ``state()`` features.
 
-One numpy race (the pybullet env) takes a shortcut on the usual, quiet step — nobody passes
-a gate, nears a road edge, touches another car or is done —: the same arithmetic in Python
+One numpy race (the pybullet env) takes a shortcut on the usual, quiet step — nobody crosses
+the line, nears a road edge, touches another car or is done —: the same arithmetic in Python
 floats per car (``_quiet_step``, held bit for bit to the array path by
 ``tests/arena/test_step_shortcuts.py``), which declines every other step.
 
@@ -304,9 +304,10 @@ def _quiet_step(
 ) -> tuple[EpisodeState, Outcome] | None:
     """:func:`_rules_step` of one numpy race on a quiet step, in Python floats per car.
 
-    Quiet: every car racing, and none passes its next gate, has a wheel near a road edge,
+    Quiet: every car racing, and none crosses the start line, has a wheel near a road edge,
     touches another car, finishes, stalls, flips, crashes or runs out of steps — the usual
-    step. Then most of the rules' outcome is known (no lap, no contact, nobody done) and
+    step (a car crossing another gate only moves on to the next). Then most of the rules'
+    outcome is known (no lap, no contact, nobody done) and
     the rest is a few operations per car, the same IEEE operations in the same order as
     the array path's (Python's float ``%`` is ``np.mod``'s remainder, a stable sort the
     stable argsort), so the very same bits (a test holds the two paths equal) without its
@@ -332,15 +333,21 @@ def _quiet_step(
     s_now, s_prev = sensed.s[0].tolist(), st.s[0].tolist()
     gates = rules.gate_s[st.next_gate[0]].tolist()
     old_progress = st.race_progress[0].tolist()
+    n_gates, max_jump = rules.gate_s.shape[0], rules.max_jump
+    next_gates = st.next_gate[0].tolist()
+    passed = False
     progress: list[float] = []
     race_progress: list[float] = []
-    for s_to, s_from, gate, before_progress, laps in zip(
-        s_now, s_prev, gates, old_progress, st.laps[0].tolist(), strict=True
+    for i, (s_to, s_from, gate, before_progress, laps) in enumerate(
+        zip(s_now, s_prev, gates, old_progress, st.laps[0].tolist(), strict=True)
     ):
         ds = (s_to - s_from + half) % length - half  # EpisodeRules.delta_s
         ahead = (gate - s_from + half) % length - half
-        if ahead > 0 and ahead <= ds:  # the next gate lies within this step's move
-            return None
+        if ahead > 0 and ahead <= ds <= max_jump:  # crosses its next gate
+            if next_gates[i] == 0:  # the line: laps and lap times are the array path's
+                return None
+            next_gates[i] = next_gates[i] + 1 if next_gates[i] + 1 < n_gates else 0
+            passed = True
         if max(laps, 0) >= laps_done:  # a finisher (never one still racing)
             return None
         moved = 0.0 if abs(ds) > CUT_JUMP else ds
@@ -396,7 +403,7 @@ def _quiet_step(
     contact = np.zeros((1, n, n), dtype=bool)
     new = EpisodeState(
         s=sensed.s,
-        next_gate=st.next_gate,
+        next_gate=np.array([next_gates], dtype=np.int64) if passed else st.next_gate,
         laps=st.laps,
         race_progress=progress_row,
         positions=np.array([rank], dtype=np.int64),
