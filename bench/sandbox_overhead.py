@@ -202,14 +202,15 @@ def per_step(
 ) -> dict[str, Any]:
     """Seconds per step in-process, and per mode sandboxed and round-trip-only (medians of
     interleaved blocks, after a reset and 20 warm-up steps each), with the ratios; each mode
-    as every race runs it (started on the CPU ``PLACEMENT`` picks, fast wake-ups held during
-    its blocks) and unscheduled (placed by the kernel, no request held)."""
+    as every race runs it (started on the CPU ``PLACEMENT`` picks for a lone sandbox, since
+    the blocks run one policy at a time; fast wake-ups held during its blocks) and
+    unscheduled (placed by the kernel, no request held)."""
     import statistics
 
     from agents.baselines import make_baseline
     from agents.loading import DEFAULT_LAYOUT
     from submissions.remote import SandboxedPolicy
-    from submissions.scheduling import LatencyRequest
+    from submissions.scheduling import PLACEMENT, LatencyRequest
 
     observations = record_observations(track, steps)
     chunk = max(1, len(observations) // blocks)
@@ -226,6 +227,7 @@ def per_step(
     try:
         for key, policy in policies.items():  # start them all, then wait: they load in parallel
             with _scheduling(placed=UNSCHEDULED not in key):
+                PLACEMENT.reset()  # each placed as a lone sandbox is: blocks run one at a time
                 getattr(policy, "start", lambda: None)()
         for policy in policies.values():
             policy.reset(0)

@@ -190,5 +190,10 @@ class Placement:
             k, self._started = self._started, self._started + 1
         return cpus[(first + k) % len(cpus)]
 
+    def reset(self) -> None:
+        """Start the round robin afresh: the next sandbox is placed as the first was."""
+        with self._lock:
+            self._started = 0
+
 
 PLACEMENT = Placement()  # where this process's sandboxes start

@@ -136,6 +136,8 @@ def test_placement_takes_the_cpus_in_turn_after_the_hosts(monkeypatch: pytest.Mo
     assert [placement.next_cpu() for _ in range(4)] == [7, 2, 5, 7]
     monkeypatch.setattr("submissions.scheduling.current_cpu", lambda: None)  # unknown: first
     assert placement.next_cpu() == 5  # the fifth start, from the first allowed CPU
+    placement.reset()
+    assert placement.next_cpu() == 2  # the first start again
     placement.enabled = False
     assert placement.next_cpu() is None
 
