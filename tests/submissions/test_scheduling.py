@@ -116,17 +116,27 @@ def _effective_latency() -> int:
 
 @pytest.mark.skipif(not DEVICE.exists(), reason="this kernel has no PM QoS CPU-latency file")
 def test_the_kernel_honours_the_request_while_it_is_held(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.delenv(LATENCY_ENV, raising=False)
+    # The kernel's value is the minimum over every process's request, and other test
+    # processes race sandboxes (holding 0) at the same time: a distinctive value is asked
+    # for, and only a window in which nobody else asks for anything counts as a check.
+    monkeypatch.setenv(LATENCY_ENV, "4321")
     request = LatencyRequest()
     if not os.access(DEVICE, os.W_OK):  # not root: nothing is asked, nothing fails
         assert request.acquire() is False
         request.release()
         return
-    before = _effective_latency()
-    assert request.acquire()
-    assert _effective_latency() == 0  # every idle CPU now polls
-    request.release()
-    assert _effective_latency() == before  # dropped when the file closed
+    seen = []
+    for _ in range(100):
+        before = _effective_latency()
+        assert request.acquire()
+        held = _effective_latency()
+        request.release()
+        after = _effective_latency()
+        seen.append((before, held, after))
+        if before == after == MAX_LATENCY_US and held == 4321:  # nobody else asked meanwhile
+            return
+        time.sleep(0.05)
+    raise AssertionError(f"the kernel never showed the request alone: {seen[-5:]}")
 
 
 def test_placement_takes_the_cpus_in_turn_after_the_hosts(monkeypatch: pytest.MonkeyPatch) -> None:
