@@ -269,3 +269,45 @@ def test_a_malformed_setting_fails_before_any_sandbox_starts(
     with pytest.raises(SandboxError, match=LATENCY_ENV):
         policy.start()
     assert policy.sandbox_id is None and WAKEUPS.holders == before
+
+
+@pytest.mark.skipif(not os.access(DEVICE, os.W_OK), reason="needs root: the PM QoS file is 0600")
+def test_a_killed_holder_leaves_no_request_behind() -> None:
+    # A job process SIGKILLed mid-race cannot release its request: the kernel drops it with
+    # the process's files, and no program it started holds the file (it is not inheritable),
+    # even one started without closing descriptors that outlives it. A child holds a
+    # distinctive value, starts such a program, and is killed.
+    import signal
+    import subprocess
+    import sys
+
+    code = (
+        "import os, subprocess, sys\n"
+        "os.environ['SLIPSTREAM_CPU_LATENCY_US'] = '4322'\n"
+        "from submissions.scheduling import WAKEUPS\n"
+        "assert WAKEUPS.acquire()\n"
+        "orphan = subprocess.Popen(['sleep', '30'], close_fds=False)\n"
+        "print(orphan.pid, flush=True)\n"
+        "sys.stdin.read()\n"
+    )
+    child = subprocess.Popen(
+        [sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+    )
+    orphan = 0
+    try:
+        assert child.stdout is not None
+        orphan = int(child.stdout.readline())
+        assert _effective_latency() <= 4322  # its request (or a stricter one of another test)
+    finally:
+        child.send_signal(signal.SIGKILL)
+        child.wait(10)
+    try:
+        assert os.path.exists(f"/proc/{orphan}")  # the program it started lives on
+        for _ in range(100):  # the kernel's minimum never again shows the dead child's value
+            value = _effective_latency()
+            assert value != 4322, "the killed process's request outlived it"
+            if value == MAX_LATENCY_US:
+                break
+            time.sleep(0.05)
+    finally:
+        os.kill(orphan, signal.SIGKILL)
