@@ -181,20 +181,25 @@ UNSCHEDULED = " unscheduled"  # a mode's figures without submissions.scheduling
 
 @contextlib.contextmanager
 def _scheduling(placed: bool) -> Iterator[None]:
-    """Sandboxes started (or taken from a pool) inside: placed by ``PLACEMENT`` or not, and
-    asking for no wake-up request themselves (the caller decides when one is held)."""
-    from submissions.scheduling import LATENCY_ENV, PLACEMENT
+    """Sandboxes started (or taken from a pool) inside: placed by ``PLACEMENT`` and with the
+    host spinning for fast replies, or neither; asking for no wake-up request themselves
+    (the caller decides when one is held)."""
+    from submissions.scheduling import LATENCY_ENV, PLACEMENT, SPIN_ENV
 
-    before, enabled = os.environ.get(LATENCY_ENV), PLACEMENT.enabled
-    os.environ[LATENCY_ENV], PLACEMENT.enabled = "off", placed
+    settings = {LATENCY_ENV: "off"} | ({} if placed else {SPIN_ENV: "0"})
+    before = {name: os.environ.get(name) for name in settings}
+    enabled = PLACEMENT.enabled
+    os.environ.update(settings)
+    PLACEMENT.enabled = placed
     try:
         yield
     finally:
         PLACEMENT.enabled = enabled
-        if before is None:
-            os.environ.pop(LATENCY_ENV, None)
-        else:
-            os.environ[LATENCY_ENV] = before
+        for name, value in before.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
 
 
 def per_step(
@@ -203,8 +208,9 @@ def per_step(
     """Seconds per step in-process, and per mode sandboxed and round-trip-only (medians of
     interleaved blocks, after a reset and 20 warm-up steps each), with the ratios; each mode
     as every race runs it (started on the CPU ``PLACEMENT`` picks for a lone sandbox, since
-    the blocks run one policy at a time; fast wake-ups held during its blocks) and
-    unscheduled (placed by the kernel, no request held)."""
+    the blocks run one policy at a time; fast wake-ups held during its blocks; the host
+    spinning for fast replies) and unscheduled (placed by the kernel, no request held, no
+    spin)."""
     import statistics
 
     from agents.baselines import make_baseline

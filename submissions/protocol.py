@@ -67,6 +67,7 @@ DTYPES: dict[int, np.dtype[Any]] = {
     6: np.dtype("?"),
 }
 _CODES = {dt.str: code for code, dt in DTYPES.items()}  # keyed by "<f4", "|u1"…: fast
+_CODE_OF = {dt: code for code, dt in DTYPES.items()}  # keyed by the dtype itself: faster
 _SHAPES = [struct.Struct(f"<{n}Q") for n in range(MAX_NDIM + 1)]  # a shape of n axes
 _HEAD_1D = struct.Struct("<2sBBBxHQQ")  # a header and its one axis: most frames
 _EMPTY = np.zeros(0, np.uint8)
@@ -129,6 +130,9 @@ class Frame(NamedTuple):
         return bytes(self.array.astype(np.uint8, copy=False)).decode("utf-8", "replace")
 
 
+_new_frame = tuple.__new__  # a Frame made without NamedTuple's Python-level __new__
+
+
 def encode(kind: Kind, array: Any = None, seq: int = 0) -> bytes:
     """The frame for ``kind`` carrying ``array`` (default: an empty uint8 array), numbered ``seq``.
 
@@ -140,6 +144,16 @@ def encode(kind: Kind, array: Any = None, seq: int = 0) -> bytes:
             larger than ``MAX_FRAME`` bytes.
     """
     arr = _EMPTY if array is None else np.asarray(array)
+    if arr.ndim == 1 and (code := _CODE_OF.get(arr.dtype)) is not None:
+        # The usual frame (one axis, a dtype sent as it is): the same bytes, at once.
+        payload = arr.tobytes()
+        if (n := len(payload)) <= MAX_FRAME:
+            return _HEAD_1D.pack(MAGIC, kind, code, 1, seq % SEQ_MODULO, n, arr.shape[0]) + payload
+    return _encode_general(kind, arr, seq)
+
+
+def _encode_general(kind: Kind, arr: NDArray[Any], seq: int) -> bytes:
+    """:func:`encode` for any array, step by step (each refusal with its reason)."""
     code = _CODES.get(arr.dtype.str)
     if code is None:  # widen
         wide = arr.dtype.itemsize > 4
@@ -193,7 +207,7 @@ def decode_frame(data: bytes, max_frame: int = MAX_FRAME, *, trailing: bool = Fa
             and n * dtype.itemsize == nbytes
             and (len(data) == end or (trailing and len(data) > end))
         ):
-            return Frame(kind, np.frombuffer(data, dtype, n, _HEAD_1D.size), seq)
+            return _new_frame(Frame, (kind, np.frombuffer(data, dtype, n, _HEAD_1D.size), seq))
     # Anything else, every refusal and every short frame included, takes the general path.
     return _decode_general(data, max_frame, trailing)
 

@@ -103,7 +103,7 @@ from submissions.protocol import (
     encode,
 )
 from submissions.sandbox import SandboxLimits, SandboxProcess, sandbox_mode
-from submissions.scheduling import PLACEMENT, WAKEUPS
+from submissions.scheduling import CONTENTION, PLACEMENT, WAKEUPS, spin_limit_s
 
 log = logging.getLogger(__name__)
 OUTPUT_HEAD = 4 << 10  # bytes of the worker's output kept from the start
@@ -270,6 +270,8 @@ def _pump(me: SandboxedPolicy, timeout: float) -> None:
     """Wait up to ``timeout`` s for a wake-up on ``me``'s bell or any waiting policy's;
     take and timestamp every reply that came."""
     if me._bell >= 0 and len(_WAITING) == 1 and me in _WAITING:  # alone: no snapshot needed
+        if me._spin_s > 0 and CONTENTION.spin_allowed() and me._spin(timeout):
+            return
         if me._poller.poll(max(0, math.ceil(timeout * 1000))):
             me._pull(time.monotonic())
         return
@@ -321,6 +323,7 @@ def _surely_within(
 
 
 _GONE = "gone"  # a reply item: the worker's end of the bell closed, no reply came
+_ACTION, _ERROR = Kind.ACTION, Kind.ERROR  # a module name is read faster than an enum's
 
 
 # ---- the policy --------------------------------------------------------------------------
@@ -385,6 +388,8 @@ class SandboxedPolicy:
         self._rung_at_post = 0  # … when the current request was posted
         self._reply: tuple[float, Frame | ProtocolError | str] | None = None  # to _seq
         self._wakeups = False  # it holds one count of the process's fast wake-ups
+        self._spin_limit = 0.0  # the longest it spins for a reply, s (scheduling module)
+        self._spin_s = 0.0  # … for the next one: twice the last step time, within the limit
 
     # ---- lifecycle -----------------------------------------------------------------------
 
@@ -396,6 +401,8 @@ class SandboxedPolicy:
         """
         if self._proc is not None:
             return
+        self._spin_limit = spin_limit_s()  # a malformed setting fails before anything starts
+        self._spin_s = 0.0
         self._hold_wakeups()  # first: a malformed setting fails before any process starts
         self.failure = None
         self.bank = self.limits.overage_s
@@ -511,6 +518,7 @@ class SandboxedPolicy:
         self.bank = self.limits.overage_s
         self.race_deadline = None
         self.step_times = []
+        self._spin_s = 0.0
         self._output.clear()
 
     def __enter__(self) -> SandboxedPolicy:
@@ -601,12 +609,13 @@ class SandboxedPolicy:
             self._not_waiting()
         took = arrived - sent
         self.step_times.append(took)
+        self._spin_s = min(2 * took, self._spin_limit) if took <= self._spin_limit else 0.0
         self.bank -= max(0.0, took - deadline)
         if self.bank < 0:
             self._fail(self._timeout(f"took {took:.3f} s"))
-        if frame.kind == Kind.INVALID:
-            self._fail(PolicyInvalid(f"policy {self.name!r}: {frame.text}"))
-        if frame.kind != Kind.ACTION:
+        if frame.kind is not _ACTION:  # (a module constant: on every step's path)
+            if frame.kind == Kind.INVALID:
+                self._fail(PolicyInvalid(f"policy {self.name!r}: {frame.text}"))
             self._fail(PolicyCrash(f"policy {self.name!r}: expected ACTION, got {frame.kind.name}"))
         return self._action(frame.array)
 
@@ -721,6 +730,26 @@ class SandboxedPolicy:
             elif ended:
                 self._reply = (now, _GONE)
 
+    def _spin(self, timeout: float) -> bool:
+        """Busy-wait up to the spin budget (and ``timeout`` s) until the reply slot holds
+        the current request's number, then take the reply (:mod:`submissions.scheduling`:
+        how the host waits). Returns whether a reply was taken; False sends the caller to
+        ``poll`` (budget spent, or the number came before its bell: the bell decides)."""
+        channel = self._channel
+        budget = min(self._spin_s, timeout)
+        if channel is None or budget <= 0:
+            return False
+        peek, seq, clock = channel.reply_seq, self._seq, time.perf_counter
+        end = clock() + budget
+        try:
+            while peek() != seq:
+                if clock() >= end:
+                    return False
+        except ValueError:  # the channel was closed meanwhile (shut down from another thread)
+            return False
+        self._pull(time.monotonic())
+        return self._reply is not None
+
     def _next_seq(self) -> int:
         self._seq = (self._seq + 1) % SEQ_MODULO or 1  # 0 is READY's
         return self._seq
@@ -780,7 +809,7 @@ class SandboxedPolicy:
                     f"numbered {item.seq} while waiting for the reply to {self._seq}"
                 )
             )
-        if item.kind == Kind.ERROR:
+        if item.kind is _ERROR:
             self._fail(PolicyCrash(f"policy {self.name!r}: {item.text}"))
         return item, arrived
 

@@ -262,3 +262,39 @@ def test_the_one_axis_shortcut_decodes_exactly_as_the_general_path(
     fast = _outcome(decode_frame, bytes(data), max_frame, trailing)
     general = _outcome(_decode_general, bytes(data), max_frame, trailing)
     assert fast == general
+
+
+def _encoded(kind: Kind, arr: object, seq: int) -> object:
+    """The bytes :func:`encode` makes of ``arr``, or the refusal's type and text."""
+    from submissions.protocol import _encode_general
+
+    try:
+        return _encode_general(kind, arr, seq)  # type: ignore[arg-type]
+    except ProtocolError as err:
+        return (type(err).__name__, str(err))
+
+
+@given(
+    arr=hnp.arrays(
+        dtype=st.sampled_from(
+            [*DTYPES, ">f4", ">f8", "<f2", "<i2", "<u2", "<u4", "<u8", "i1", ">i4", "=f4", "c8"]
+        ),
+        shape=hnp.array_shapes(min_dims=0, max_dims=3, min_side=0, max_side=5),
+    ),
+    seq=st.integers(0, 3 * (1 << 16)),
+    kind=st.sampled_from(list(Kind)),
+)
+@settings(max_examples=400)
+@example(np.arange(6, dtype=np.float32)[::2], 3, Kind.ACT)  # a strided view
+@example(np.zeros(3, ">f4"), 1, Kind.ACTION)  # big-endian: widened by the general path
+@example(np.zeros(3, np.dtype("<f4", metadata={"unit": "m"})), 1, Kind.ACT)  # dtype metadata
+def test_the_one_axis_shortcut_encodes_exactly_as_the_general_path(
+    arr: np.ndarray, seq: int, kind: Kind
+) -> None:
+    # encode() takes a shortcut for one-axis arrays of a dtype sent as it is (every
+    # observation and action); on any array it must make the same bytes or the same refusal.
+    try:
+        fast: object = encode(kind, arr, seq)
+    except ProtocolError as err:
+        fast = (type(err).__name__, str(err))
+    assert fast == _encoded(kind, np.asarray(arr), seq)

@@ -16,14 +16,23 @@ from agents.loading import DEFAULT_LAYOUT
 from arena.race import run_race
 from submissions.errors import SandboxError
 from submissions.remote import SandboxedPolicy, SandboxPool
+from submissions.sandbox import SandboxLimits
 from submissions.scheduling import (
+    BACKOFF_S,
+    CONTENDED_SHARE,
     DEVICE,
     LATENCY_ENV,
     MAX_LATENCY_US,
+    MAX_SPIN_US,
+    SAMPLE_S,
+    SPIN_ENV,
+    SPIN_US,
     WAKEUPS,
+    CpuContention,
     LatencyRequest,
     Placement,
     current_cpu,
+    spin_limit_s,
 )
 
 from .conftest import FAST, MakeBundle, race_against_pursuit
@@ -311,3 +320,272 @@ def test_a_killed_holder_leaves_no_request_behind() -> None:
             time.sleep(0.05)
     finally:
         os.kill(orphan, signal.SIGKILL)
+
+
+# ---- how the host waits: the spin ---------------------------------------------------------
+
+
+@pytest.mark.parametrize(("raw", "limit_us"), [("", SPIN_US), ("0", 0), (" 50 ", 50)])
+def test_the_spin_limit_is_the_one_asked_for(
+    raw: str, limit_us: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv(SPIN_ENV, raw)
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1})
+    assert spin_limit_s() == pytest.approx(limit_us * 1e-6)
+
+
+def test_a_host_on_one_cpu_never_spins(monkeypatch: pytest.MonkeyPatch) -> None:
+    # spinning there would take the only CPU from the worker it waits for
+    monkeypatch.setenv(SPIN_ENV, "500")
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {3})
+    assert spin_limit_s() == 0.0
+
+
+@pytest.mark.parametrize("raw", ["fast", "-1", "2.5", str(MAX_SPIN_US + 1)])
+def test_a_malformed_spin_setting_fails_before_any_sandbox_starts(
+    raw: str, make_python_bundle: MakeBundle, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv(SPIN_ENV, raw)
+    with pytest.raises(SandboxError, match=SPIN_ENV) as err:
+        spin_limit_s()
+    assert repr(raw.strip()) in str(err.value)
+    policy = SandboxedPolicy(make_python_bundle("class Policy(Driver): pass"), FAST)
+    before = WAKEUPS.holders
+    with pytest.raises(SandboxError, match=SPIN_ENV):
+        policy.start()
+    assert policy.sandbox_id is None and WAKEUPS.holders == before
+
+
+class Pressure:
+    """A stand-in ``/proc/pressure/cpu`` and a clock the test drives: ``stall(share, s)``
+    lets ``s`` seconds pass with some task waiting for a CPU ``share`` of the time."""
+
+    def __init__(self, path: Path) -> None:
+        self.path, self.now, self.total_us = path, 1000.0, 5_000_000
+        self.write()
+
+    def write(self) -> None:
+        self.path.write_text(
+            f"some avg10=1.00 avg60=2.00 avg300=3.00 total={self.total_us}\n"
+            "full avg10=0.00 avg60=0.00 avg300=0.00 total=0\n"
+        )
+
+    def stall(self, share: float, seconds: float) -> None:
+        self.now += seconds
+        self.total_us += round(share * seconds * 1e6)
+        self.write()
+
+
+def test_the_host_spins_while_the_cpus_are_free_and_backs_off_when_they_are_not(
+    tmp_path: Path,
+) -> None:
+    pressure = Pressure(tmp_path / "cpu")
+    gate = CpuContention(pressure.path, clock=lambda: pressure.now)
+    sample = SAMPLE_S * 1.01  # a little over one sample (the clock is a float)
+    assert gate.spin_allowed()  # a first sample: nothing to compare yet
+    pressure.stall(CONTENDED_SHARE / 2, sample)
+    assert gate.spin_allowed()  # a free machine (the ping-pong itself stalls ~1 %)
+    pressure.stall(CONTENDED_SHARE * 4, SAMPLE_S / 3)
+    assert gate.spin_allowed()  # within a sample: not read again
+    pressure.stall(CONTENDED_SHARE * 4, sample)
+    assert not gate.spin_allowed()  # contended: no spin, for the backoff
+    pressure.stall(0.0, BACKOFF_S / 2)
+    assert not gate.spin_allowed()  # still backing off, however free the CPUs now are
+    pressure.stall(0.0, BACKOFF_S)
+    assert gate.spin_allowed()  # tries again, from a fresh sample
+    pressure.stall(CONTENDED_SHARE * 1.5, sample)
+    assert not gate.spin_allowed()
+
+
+def test_a_pause_longer_than_a_few_samples_starts_afresh(tmp_path: Path) -> None:
+    # Stalls while nobody asked (between races, say) are not charged to the next spin.
+    pressure = Pressure(tmp_path / "cpu")
+    gate = CpuContention(pressure.path, clock=lambda: pressure.now)
+    assert gate.spin_allowed()
+    pressure.stall(0.9, 30.0)
+    assert gate.spin_allowed()
+    pressure.stall(0.9, SAMPLE_S * 1.01)
+    assert not gate.spin_allowed()
+
+
+@pytest.mark.parametrize("content", [None, "", "some avg10=1.00\n", "garbage total=x\n"])
+def test_without_pressure_information_the_host_never_spins(
+    content: str | None, tmp_path: Path
+) -> None:
+    path = tmp_path / "cpu"
+    if content is not None:
+        path.write_text(content)
+    gate = CpuContention(path, clock=time.monotonic)
+    assert not gate.spin_allowed() and not gate.spin_allowed()
+
+
+class CountingPoller:
+    """A ``select.poll`` object that counts the calls that may sleep (timeout > 0)."""
+
+    def __init__(self, inner: Any) -> None:
+        self.inner, self.sleeps = inner, 0
+
+    def register(self, *args: Any) -> None:
+        self.inner.register(*args)
+
+    def poll(self, timeout: int) -> Any:
+        self.sleeps += timeout > 0
+        return self.inner.poll(timeout)
+
+
+ZEROS = """
+import numpy as np
+
+
+class Policy:
+    def act(self, obs):
+        return np.zeros(2, np.float32)
+"""
+
+
+class Gate:
+    """A stand-in for :data:`submissions.scheduling.CONTENTION` that says what it is told
+    (the real one reads this machine's CPU pressure: its own tests are above)."""
+
+    def __init__(self, free: bool) -> None:
+        self.free, self.asked = free, 0
+
+    def spin_allowed(self) -> bool:
+        self.asked += 1
+        return self.free
+
+
+def _sleeps_over_steps(policy: SandboxedPolicy, steps: int) -> int:
+    """How many of ``steps`` acts the host slept in ``poll`` for (a lone policy)."""
+    policy.reset(0)
+    counting = CountingPoller(policy._poller)
+    policy._poller = counting  # type: ignore[assignment]
+    obs = [0.0] * int(policy.env_spec["obs_shape"][0])
+    for _ in range(steps):
+        policy.act(obs)
+    return counting.sleeps
+
+
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="one CPU: the host never spins")
+def test_a_fast_reply_is_taken_without_sleeping_in_poll(
+    mode: str, make_python_bundle: MakeBundle, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The limit is raised to 0.1 s so that a loaded test machine (a reply taking far longer
+    # than the default's 200 µs) does not decide the outcome; the rule is the same.
+    bundle = make_python_bundle(ZEROS, name="zeros", driver=False)
+    monkeypatch.setenv(SPIN_ENV, str(MAX_SPIN_US))
+    monkeypatch.setattr("submissions.remote.CONTENTION", Gate(free=True))
+    spinning = SandboxedPolicy(bundle, FAST)
+    try:
+        sleeps = _sleeps_over_steps(spinning, 200)
+        assert sleeps <= 40, sleeps  # the first step, and a few the machine delayed
+        assert 0 < spinning._spin_s <= MAX_SPIN_US * 1e-6
+    finally:
+        spinning.close()
+    monkeypatch.setenv(SPIN_ENV, "0")
+    sleeping = SandboxedPolicy(bundle, FAST)
+    try:
+        assert _sleeps_over_steps(sleeping, 50) == 50
+    finally:
+        sleeping.close()
+
+
+def test_contended_cpus_stop_the_spin(
+    mode: str, make_python_bundle: MakeBundle, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The gate says the machine is busy: the host sleeps in poll for every reply.
+    monkeypatch.setenv(SPIN_ENV, str(MAX_SPIN_US))
+    gate = Gate(free=False)
+    monkeypatch.setattr("submissions.remote.CONTENTION", gate)
+    policy = SandboxedPolicy(make_python_bundle(ZEROS, name="zeros", driver=False), FAST)
+    try:
+        assert _sleeps_over_steps(policy, 50) == 50
+        assert gate.asked >= 40 and policy._spin_s > 0  # it would have spun
+    finally:
+        policy.close()
+
+
+SLOW = """
+import time
+import numpy as np
+
+
+class Policy:
+    def act(self, obs):
+        time.sleep(0.004)
+        return np.zeros(2, np.float32)
+"""
+
+
+def test_a_policy_slower_than_the_limit_never_costs_a_spin(
+    mode: str, make_python_bundle: MakeBundle, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # 4 ms a step, against a 1 ms limit: the host sleeps in poll at every step, and its CPU
+    # time stays far below the steps' wall time.
+    monkeypatch.setenv(SPIN_ENV, "1000")
+    policy = SandboxedPolicy(make_python_bundle(SLOW, name="slow", driver=False), FAST)
+    try:
+        policy.reset(0)
+        obs = [0.0] * int(policy.env_spec["obs_shape"][0])
+        policy.act(obs)
+        assert policy._spin_s == 0.0
+        cpu = time.thread_time()
+        sleeps = _sleeps_over_steps(policy, 25)
+        assert sleeps == 25 and policy._spin_s == 0.0
+        assert time.thread_time() - cpu < 0.025  # 25 steps of ≥ 4 ms: ≥ 100 ms of wall time
+    finally:
+        policy.close()
+
+
+NUMBER_WITHOUT_BELL = """
+import gc, os, struct, time
+import numpy as np
+from submissions.channel import REPLY_BYTES
+from submissions.protocol import Kind, encode
+
+
+class Policy:
+    steps = 0
+
+    def act(self, obs):
+        self.steps += 1
+        if self.steps < 30:
+            return np.zeros(2, np.float32)
+        ch = next(o for o in gc.get_objects() if type(o).__name__ == "WorkerChannel")
+        seq = struct.unpack_from("<H", ch.memory, 6)[0]
+        frame = encode(Kind.ACTION, np.ones(2, np.float32), seq)
+        at = len(ch.memory) - REPLY_BYTES
+        ch.memory[at : at + len(frame)] = frame  # the reply's number in the slot, never rung
+        time.sleep(3600)
+"""
+
+
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="one CPU: the host never spins")
+def test_a_reply_number_without_its_bell_is_not_taken_by_the_spin(
+    mode: str, make_python_bundle: MakeBundle, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # An attacker who read the spin: after 29 fast answers (the host spins for the 30th) it
+    # writes a well-formed reply with the right number and never rings. The host sees the
+    # number, finds no wake-up on the bell, sleeps in poll, and retires the car at its
+    # deadline: the bell, not the number, says a reply is complete.
+    from submissions.remote import PolicyTimeout
+
+    monkeypatch.setenv(SPIN_ENV, str(MAX_SPIN_US))
+    monkeypatch.setattr("submissions.remote.CONTENTION", Gate(free=True))
+    quick = SandboxLimits(step_deadline_s=0.25, overage_s=1.0, startup_s=60.0)
+    policy = SandboxedPolicy(
+        make_python_bundle(NUMBER_WITHOUT_BELL, name="nobell", driver=False), quick
+    )
+    try:
+        policy.reset(0)
+        obs = [0.0] * int(policy.env_spec["obs_shape"][0])
+        for _ in range(29):
+            assert policy.act(obs).tolist() == [0.0, 0.0]
+        assert policy._spin_s > 0
+        start = time.monotonic()
+        with pytest.raises(PolicyTimeout, match="no action"):
+            policy.act(obs)
+        limit = quick.step_deadline_s + quick.overage_s
+        assert time.monotonic() - start < limit + 1.0
+    finally:
+        policy.close()
