@@ -38,7 +38,8 @@ run, against the same in-process figures.
    the CPU seconds its processes spent by then, for the zeros policy (the sandbox and the
    worker's own imports) and the pursuit policy (plus the simulator modules it imports).
 
-Nothing is pinned: the sandboxed worker is a second process by design.
+The bench's own process is not pinned; each sandbox is bound to a CPU as every race binds
+it (scheduled) or left to the kernel (unscheduled).
 
 Usage::
 

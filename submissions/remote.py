@@ -413,9 +413,7 @@ class SandboxedPolicy:
         channel = Channel(request_bytes_for(self.env_spec.get("obs_shape", [])))
         out_r, out_w = os.pipe()  # the worker's stdout and stderr
         args = ["--channel", channel.worker_arg(), "--spec", json.dumps(self.env_spec)]
-        cpu = PLACEMENT.next_cpu()  # started there, then free again (scheduling module)
-        if cpu is not None:
-            args += ["--cpus", ",".join(map(str, sorted(os.sched_getaffinity(0))))]
+        cpu = PLACEMENT.next_cpu()  # bound there for good (scheduling module)
         try:
             self._proc = SandboxProcess(
                 args,

@@ -941,9 +941,8 @@ class SandboxProcess:
         pass_fds: the descriptors the worker inherits (the protocol pipes).
         output_fd: where the worker's stdout and stderr go (a pipe the host drains).
         mode: ``"bwrap"`` or ``"seccomp"`` (default: :func:`sandbox_mode`).
-        cpu: the CPU its first process is bound to from its start (None: the kernel
-            places it); the worker widens its mask again once loaded
-            (:mod:`submissions.scheduling`).
+        cpu: the CPU its processes are bound to from the start (None: the kernel places
+            them; :mod:`submissions.scheduling`).
 
     Attributes:
         folder: the sandbox's folder (None once removed).

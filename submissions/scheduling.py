@@ -13,9 +13,14 @@ then take turns on one core, each evicting the other's working set (the pursuit 
 step slowed alike). :data:`PLACEMENT` picks the CPU each new sandbox starts on: round robin
 over the host's allowed CPUs, starting with the one after the CPU the host runs on, so a
 lone sandbox gets a core of its own and a race's four share the cores evenly with the host
-(two each on two cores). The sandbox is only *started* there: the worker widens its CPU
-mask back to the host's before it says ``READY`` (``--cpus``), so the kernel's load
-balancer still moves it where the load asks.
+(two each on two cores). The sandbox stays bound to that CPU for its whole life (a pooled
+one too). An earlier version let the worker widen its mask back to the host's once loaded,
+so that the load balancer could move it; measured side by side on the 2-vCPU VM (four
+alternating runs of ``bench/sandbox_overhead.py`` each), a lone sandbox's step came out
+1.31–1.52× in-process bound and 1.41–2.24× widened (the kernel's wake-ups of a
+ping-ponging pair pull the two back onto one CPU now and then, for good), while 4-car races
+were within the runs' noise of each other (pooled 0.61–0.69× bound, 0.66–0.71× widened). The
+trade: a bound worker cannot flee a CPU that something else keeps busy.
 
 **How fast an idle CPU wakes.** When the CPU that should run the woken process is idle,
 cpuidle has usually halted it, and waking a halted CPU costs an inter-processor interrupt;
@@ -85,8 +90,8 @@ SPIN_US = 200  # its default
 MAX_SPIN_US = 100_000
 PRESSURE = Path("/proc/pressure/cpu")  # the kernel's CPU pressure stall information
 SAMPLE_S = 0.02  # how often the host reads it while it may spin, s
-CONTENDED_SHARE = 0.05  # more wall time than this with some task waiting: contended
-BACKOFF_S = 1.0  # how long the host then waits before it may spin again, s
+CONTENDED_SHARE = 0.10  # more wall time than this with some task waiting: contended
+BACKOFF_S = 0.25  # how long the host then waits before it may spin again, s
 
 
 def requested_latency_us() -> int | None:

@@ -58,17 +58,7 @@ def _args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--drop-uid", type=int, default=-1, help="see sandbox.drop_identity")
     parser.add_argument("--read", action="append", default=[])
     parser.add_argument("--write", action="append", default=[])
-    parser.add_argument("--cpus", default="", help="CPUs to widen to once loaded (0,1,...)")
     return parser.parse_args(argv)
-
-
-def widen_cpus(spec: str) -> None:
-    """Let the kernel run this process on any of ``spec``'s CPUs again (it was started
-    bound to one: :mod:`submissions.scheduling`); a mask the kernel refuses is left as is."""
-    if not spec:
-        return
-    with contextlib.suppress(ValueError, OSError):
-        os.sched_setaffinity(0, {int(cpu) for cpu in spec.split(",")})
 
 
 PROC_FILES = ("status", "stat", "statm", "limits", "maps")  # of itself; never net/ or fd/
@@ -200,7 +190,6 @@ def main(argv: list[str] | None = None) -> int:
         channel.reply(encode_text(Kind.ERROR, f"loading failed: {_describe(err)}"))
         return 1
     hello = {"name": str(manifest.get("name", "")), "format": manifest.get("format")}
-    widen_cpus(args.cpus)
     channel.reply(encode_json(Kind.READY, hello | {"landlock": landlock}))
     with contextlib.suppress(BrokenPipeError):
         serve(policy, channel)
