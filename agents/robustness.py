@@ -583,7 +583,7 @@ def _ProgressCallback(progress: ProgressFn, total: int) -> Any:
 
 # ---- training side --------------------------------------------------------------------------
 
-TRAINING_UNCERTAINTY = ("nominal", "sample", "wide", "adversarial", "robust_mg")
+TRAINING_UNCERTAINTY = ("nominal", "sample", "wide", "cvar", "adversarial", "robust_mg")
 """What ``slipstream train --uncertainty`` takes (see :func:`training_uncertainty`)."""
 
 
@@ -597,6 +597,9 @@ def training_uncertainty(name: str) -> Any:
     * ``wide``: domain randomisation over :func:`wide_dynamics`, wider than the set a policy is
       scored on (over-randomisation: the evaluation grid's edges, where policies fail, are
       then inside the training range rather than at its rim);
+    * ``cvar``: the same wide domain randomisation, with every PPO update on the worst half of
+      its rollout's slots (a CVaR objective, EPOpt's recipe: :mod:`agents.cvar`; the
+      selection is :func:`agents.cvar.cvar_buffer`, which ``slipstream train`` adds);
     * ``adversarial``: RARL, a nature per car choosing the dynamics inside that set every
       step (rate-limited);
     * ``robust_mg``: Zhang et al.'s robust Markov game: the same nature also chooses the
@@ -615,7 +618,7 @@ def training_uncertainty(name: str) -> Any:
         return None
     if name == "robust_mg":
         return default_config("adversarial", reward=zhang_reward())
-    if name == "wide":
+    if name in ("wide", "cvar"):
         from arena.uncertainty import UncertaintyConfig  # noqa: PLC0415 - heavy, imported on use
 
         return UncertaintyConfig(mode="sample", dynamics=wide_dynamics())

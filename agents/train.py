@@ -184,6 +184,7 @@ class TrainArgs:
     uncertainty: str = "nominal"
     """model uncertainty in training: nominal, sample (domain randomisation over the default
     robust set of arena.uncertainty), wide (the same over intervals 1.5 times as wide),
+    cvar (wide, each PPO update on the worst half of its rollout's slots: agents.cvar),
     adversarial (RARL: nature agents pick each car's
     perturbation, every step within a rate limit; racer and nature trained in alternation;
     with --backend batch the natures of every car of every race act as one batch) or
@@ -863,6 +864,11 @@ def main(args: TrainArgs) -> dict[str, Any]:
         "vf_coef": args.vf_coef,
         "max_grad_norm": args.max_grad_norm,
     }
+    cvar_kwargs: dict[str, Any] = {}
+    if args.uncertainty == "cvar":  # updates on the worst share of each rollout
+        from agents.cvar import cvar_buffer  # noqa: PLC0415 - only this arm
+
+        cvar_kwargs = cvar_buffer(args.total_timesteps, args.n_steps, vec_env.num_envs)
     model = PPO(
         "MlpPolicy",
         vec_env,
@@ -875,6 +881,7 @@ def main(args: TrainArgs) -> dict[str, Any]:
         seed=args.seed,
         device="cpu",
         verbose=args.verbose,
+        **cvar_kwargs,
     )
     recorded = {
         **hyper,

@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-ARMS = ("nominal", "sample", "wide", "adversarial", "robust_mg")
+ARMS = ("nominal", "sample", "wide", "cvar", "adversarial", "robust_mg")
 TRAIN_TRACKS = ("oval", "hairpins", "chicanes", "bean", "technical", "speedway")
 EVAL_TRACKS = (
     "monza",
@@ -239,6 +239,19 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     p.add_argument("--arms", nargs="+", default=list(ARMS), choices=ARMS)
     p.add_argument("--seeds", type=int, default=5, help="seeds per arm (1 … N)")
+    p.add_argument(
+        "--first-seed",
+        type=int,
+        default=1,
+        help="train and score seeds first … first+N−1 only (split an arm over processes)",
+    )
+    p.add_argument(
+        "--runs-from",
+        type=Path,
+        default=None,
+        help="take the scores of arms not trained here from this result file (the same "
+        "evaluation tracks, starts and grid; its seeds as they were)",
+    )
     p.add_argument("--steps", type=int, default=20_000_000, help="agent-steps per run (budget)")
     p.add_argument("--train-tracks", nargs="+", default=list(TRAIN_TRACKS))
     p.add_argument("--eval-tracks", nargs="+", default=list(EVAL_TRACKS))
@@ -290,7 +303,21 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     for name in [*args.train_tracks, *args.eval_tracks]:
         load_track(name)
     runs: dict[str, dict[int, dict[str, dict[str, float]]]] = {}
-    for seed in range(1, args.seeds + 1):  # seed-major: a run cut short leaves balanced arms
+    earlier_training: dict[str, Any] = {}
+    if args.runs_from is not None:
+        earlier = json.loads(args.runs_from.read_text(encoding="utf-8"))
+        earlier_training = {
+            run: fig
+            for run, fig in earlier.get("training", {}).items()
+            if run.rsplit("_s", 1)[0] not in args.arms
+        }
+        if list(earlier["eval_tracks"]) != list(args.eval_tracks):
+            p.error(f"{args.runs_from} was scored on other tracks: {earlier['eval_tracks']}")
+        for arm, seeds in earlier["runs"].items():
+            if arm not in args.arms:
+                runs[arm] = {int(s): v for s, v in seeds.items()}
+    first = args.first_seed
+    for seed in range(first, first + args.seeds):  # seed-major: a run cut short stays balanced
         for arm in args.arms:
             policy = train_run(args, arm, seed)
             runs.setdefault(arm, {})[seed] = score_run(args, policy)
@@ -299,7 +326,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     result = {
         "command": "python bench/robust_experiment.py " + " ".join(argv or sys.argv[1:]),
         "budget_steps_per_run": args.steps,
-        "training": training_figures(args.out, runs),
+        "training": {**earlier_training, **training_figures(args.out, runs)},
         "train_tracks": args.train_tracks,
         "eval_tracks": args.eval_tracks,
         "runs": {arm: {str(s): v for s, v in seeds.items()} for arm, seeds in runs.items()},
