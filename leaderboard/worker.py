@@ -155,10 +155,12 @@ def default_runner(
     from submissions.executors import KEEP_WARM_S, make_executor  # noqa: PLC0415 - the simulator
     from submissions.sandbox import allow_weak_sandbox as allow  # noqa: PLC0415
     from submissions.sandbox import sandbox_mode  # noqa: PLC0415
+    from submissions.scheduling import check_settings  # noqa: PLC0415
 
     if allow_weak_sandbox:
         allow()
     sandbox_mode()  # fail closed before any race is claimed
+    check_settings()  # a malformed scheduling setting likewise
     # Job processes (and their sandboxes) stay warm between batches: a bundle raced again
     # soon after skips its sandbox's start-up (Worker.close ends them).
     return make_executor(ray_address=ray_address, workers=workers, keep_warm_s=KEEP_WARM_S)

@@ -169,10 +169,12 @@ def evaluate_command(args: argparse.Namespace) -> int:
     from submissions.bundle import open_bundle
     from submissions.executors import JOB_TIMEOUT_S, KEEP_WARM_S, make_executor
     from submissions.sandbox import allow_weak_sandbox, sandbox_mode
+    from submissions.scheduling import check_settings
 
     if args.allow_weak_sandbox:
         allow_weak_sandbox()
     sandbox_mode()  # fail closed here, in one line, before anything runs
+    check_settings()  # and a malformed scheduling setting likewise
     bundle = args.bundle.resolve()
     with tempfile.TemporaryDirectory(prefix="slipstream-check-") as tmp:
         opened = open_bundle(bundle, Path(tmp) / "bundle")  # fail fast, clearly

@@ -139,6 +139,18 @@ def spin_limit_s() -> float:
     return value * 1e-6
 
 
+def check_settings() -> None:
+    """Check ``SLIPSTREAM_CPU_LATENCY_US`` and ``SLIPSTREAM_SPIN_US`` once, where a command
+    starts (``slipstream evaluate``, ``slipstream worker``): a typo is the operator's error,
+    said in one line, not every sandbox's start failing and its car blamed.
+
+    Raises:
+        SandboxError: either is malformed.
+    """
+    requested_latency_us()
+    spin_limit_s()
+
+
 class CpuContention:
     """Whether this machine's CPUs are free enough for the host to spin (module docstring).
 

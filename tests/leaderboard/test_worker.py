@@ -226,6 +226,24 @@ def test_the_worker_refuses_to_start_without_the_namespace_sandbox(
         allowed.close()
 
 
+@pytest.mark.parametrize(
+    ("name", "raw"), [("SLIPSTREAM_SPIN_US", "soon"), ("SLIPSTREAM_CPU_LATENCY_US", "-4")]
+)
+def test_the_worker_refuses_a_malformed_scheduling_setting_before_claiming(
+    db: Session, settings: Settings, monkeypatch: pytest.MonkeyPatch, name: str, raw: str
+) -> None:
+    # An operator's typo: said once, at the start, not every race's cars retired "error".
+    race = _one_race(db, settings)
+    monkeypatch.setenv(name, raw)
+    worker = Worker(settings, schedule=False, allow_weak_sandbox=True)
+    try:
+        with pytest.raises(SandboxError, match=name):
+            worker.run(once=True)
+    finally:
+        worker.close()
+    assert (_job(db, race).status, _job(db, race).attempts) == ("queued", 0)  # nothing claimed
+
+
 class _Controlled:
     """A runner whose job "runs" until cancelled (or ``release`` is set), with a progress
     count that a thread advances while ``advancing`` is set."""

@@ -279,6 +279,29 @@ def test_evaluate_stops_when_validation_fails(
     assert not list((tmp_path / "o").glob("*race001*"))
 
 
+@pytest.mark.parametrize(
+    ("name", "raw"), [("SLIPSTREAM_SPIN_US", "fast"), ("SLIPSTREAM_CPU_LATENCY_US", "1.5")]
+)
+def test_evaluate_refuses_a_malformed_scheduling_setting_in_one_line(
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+    name: str,
+    raw: str,
+) -> None:
+    # Before, a typo here started every sandbox of the validation race in vain and blamed
+    # the bundle: "validation race failed: …#0: error".
+    from leaderboard.cli import main
+
+    monkeypatch.setenv(name, raw)
+    bundle = python_bundle(tmp_path / "ok.zip", "", "fine")
+    out = tmp_path / "o"
+    assert main(["evaluate", str(bundle), "--races", "1", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith(f"slipstream: error: {name} must be") and repr(raw) in err[-1]
+    assert not out.exists()
+
+
 def test_evaluate_refuses_a_bad_bundle(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from leaderboard.cli import main
 
