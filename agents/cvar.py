@@ -97,13 +97,16 @@ class WorstShareRolloutBuffer(RolloutBuffer):
             yield self._get_samples(indices[start : start + size])
 
 
-def cvar_buffer(total_timesteps: int, n_steps: int, n_envs: int) -> dict[str, Any]:
+def cvar_buffer(
+    total_timesteps: int, n_steps: int, n_envs: int, share: float = CVAR_SHARE
+) -> dict[str, Any]:
     """PPO's ``rollout_buffer_class`` and ``rollout_buffer_kwargs`` for the ``cvar`` arm:
-    :data:`CVAR_SHARE` of the slots after a warm-up of :data:`CVAR_WARMUP` of the budget
-    (``total_timesteps`` agent-steps, ``n_steps × n_envs`` per rollout)."""
+    ``share`` of the slots (``slipstream train --cvar-share``) after a warm-up of
+    :data:`CVAR_WARMUP` of the budget (``total_timesteps`` agent-steps, ``n_steps × n_envs``
+    per rollout)."""
     per_rollout = max(1, n_steps * n_envs)
     warmup = math.floor(CVAR_WARMUP * total_timesteps / per_rollout)
     return {
         "rollout_buffer_class": WorstShareRolloutBuffer,
-        "rollout_buffer_kwargs": {"share": CVAR_SHARE, "warmup_rollouts": warmup},
+        "rollout_buffer_kwargs": {"share": share, "warmup_rollouts": warmup},
     }

@@ -190,6 +190,8 @@ class TrainArgs:
     with --backend batch the natures of every car of every race act as one batch) or
     robust_mg (adversarial, and the nature also picks the car's reward inside a bounded set:
     Zhang et al.'s robust Markov game; agents.robustness.training_uncertainty)"""
+    cvar_share: float = 0.5
+    """cvar: the share of each rollout's slots (the lowest returns) every PPO update trains on"""
     nature_every: int = 20_000
     """adversarial: train the nature for nature_steps after every this many racer steps"""
     nature_steps: int = 10_000
@@ -318,6 +320,8 @@ def _check(args: TrainArgs) -> None:
     from agents.robustness import training_uncertainty  # noqa: PLC0415 - heavy, imported on use
 
     training_uncertainty(args.uncertainty)  # raises on an unknown arm
+    if not 0.0 < args.cvar_share <= 1.0:
+        raise PolicyError(f"cvar_share must be within (0, 1], not {args.cvar_share}")
     if args.init_from is not None and not Path(args.init_from).is_file():
         raise PolicyError(f"init_from: no such checkpoint {args.init_from}")
     parse_mix(args.opponent_mix)  # checked even when no car is an opponent: a typo is a typo
@@ -868,7 +872,9 @@ def main(args: TrainArgs) -> dict[str, Any]:
     if args.uncertainty == "cvar":  # updates on the worst share of each rollout
         from agents.cvar import cvar_buffer  # noqa: PLC0415 - only this arm
 
-        cvar_kwargs = cvar_buffer(args.total_timesteps, args.n_steps, vec_env.num_envs)
+        cvar_kwargs = cvar_buffer(
+            args.total_timesteps, args.n_steps, vec_env.num_envs, share=args.cvar_share
+        )
     model = PPO(
         "MlpPolicy",
         vec_env,
@@ -904,6 +910,7 @@ def main(args: TrainArgs) -> dict[str, Any]:
         "n_learners": args.n_learners,
         "opponent_mix": args.opponent_mix,
         "uncertainty": args.uncertainty,
+        **({"cvar_share": args.cvar_share} if args.uncertainty == "cvar" else {}),
         "backend": args.backend,
         "car": env_kwargs["car"],
         "track_scale": track_scale(args.car),

@@ -110,6 +110,7 @@ def train_run(args: argparse.Namespace, arm: str, seed: int) -> Path:
             out=args.out,
             run_name=run,
             progress_bar=sys.stderr.isatty(),
+            cvar_share=args.cvar_share,
             nature_every=max(1, args.steps // 10),
             nature_steps=max(1, args.steps // 20),
         )
@@ -272,6 +273,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         help="a wall touch retires a learner car (what a wall costs on pybullet)",
     )
     p.add_argument("--n-epochs", type=int, default=5)
+    p.add_argument(
+        "--cvar-share", type=float, default=0.5, help="the cvar arm's share of slots per update"
+    )
     p.add_argument("--n-envs", type=int, default=8, help="races per track group")
     p.add_argument("--n-cars", type=int, default=4)
     p.add_argument("--n-steps", type=int, default=64, help="PPO rollout length per slot")

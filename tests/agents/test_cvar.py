@@ -146,3 +146,15 @@ def test_train_the_cvar_arm_on_the_batch_backend(
     # every rollout of 64 steps × its slots (no warm-up at this budget): each update on half
     slots = kept[0][1]
     assert slots > 1 and kept == [(slots // 2, slots)] * -(-2048 // (64 * slots)), kept
+
+
+def test_the_share_is_the_one_asked_for_and_a_share_outside_zero_to_one_is_refused() -> None:
+    from agents.policy import PolicyError
+    from agents.train import TrainArgs, _check
+
+    kwargs = cvar_buffer(total_timesteps=64_000, n_steps=64, n_envs=10, share=0.75)
+    assert kwargs["rollout_buffer_kwargs"]["share"] == 0.75
+    _check(TrainArgs(uncertainty="cvar", cvar_share=1.0))
+    for bad in (0.0, 1.5):
+        with pytest.raises(PolicyError, match="cvar_share"):
+            _check(TrainArgs(uncertainty="cvar", cvar_share=bad))
