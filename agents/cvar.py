@@ -98,15 +98,19 @@ class WorstShareRolloutBuffer(RolloutBuffer):
 
 
 def cvar_buffer(
-    total_timesteps: int, n_steps: int, n_envs: int, share: float = CVAR_SHARE
+    total_timesteps: int,
+    n_steps: int,
+    n_envs: int,
+    share: float = CVAR_SHARE,
+    warmup: float = CVAR_WARMUP,
 ) -> dict[str, Any]:
     """PPO's ``rollout_buffer_class`` and ``rollout_buffer_kwargs`` for the ``cvar`` arm:
-    ``share`` of the slots (``slipstream train --cvar-share``) after a warm-up of
-    :data:`CVAR_WARMUP` of the budget (``total_timesteps`` agent-steps, ``n_steps × n_envs``
+    ``share`` of the slots (``slipstream train --cvar-share``) after a warm-up of ``warmup``
+    of the budget (``--cvar-warmup``; ``total_timesteps`` agent-steps, ``n_steps × n_envs``
     per rollout)."""
     per_rollout = max(1, n_steps * n_envs)
-    warmup = math.floor(CVAR_WARMUP * total_timesteps / per_rollout)
+    rollouts = math.floor(warmup * total_timesteps / per_rollout)
     return {
         "rollout_buffer_class": WorstShareRolloutBuffer,
-        "rollout_buffer_kwargs": {"share": share, "warmup_rollouts": warmup},
+        "rollout_buffer_kwargs": {"share": share, "warmup_rollouts": rollouts},
     }

@@ -192,6 +192,8 @@ class TrainArgs:
     Zhang et al.'s robust Markov game; agents.robustness.training_uncertainty)"""
     cvar_share: float = 0.5
     """cvar: the share of each rollout's slots (the lowest returns) every PPO update trains on"""
+    cvar_warmup: float = 0.2
+    """cvar: the share of the budget first trained on every slot (EPOpt's warm-up)"""
     nature_every: int = 20_000
     """adversarial: train the nature for nature_steps after every this many racer steps"""
     nature_steps: int = 10_000
@@ -322,6 +324,8 @@ def _check(args: TrainArgs) -> None:
     training_uncertainty(args.uncertainty)  # raises on an unknown arm
     if not 0.0 < args.cvar_share <= 1.0:
         raise PolicyError(f"cvar_share must be within (0, 1], not {args.cvar_share}")
+    if not 0.0 <= args.cvar_warmup < 1.0:
+        raise PolicyError(f"cvar_warmup must be within [0, 1), not {args.cvar_warmup}")
     if args.init_from is not None and not Path(args.init_from).is_file():
         raise PolicyError(f"init_from: no such checkpoint {args.init_from}")
     parse_mix(args.opponent_mix)  # checked even when no car is an opponent: a typo is a typo
@@ -873,7 +877,11 @@ def main(args: TrainArgs) -> dict[str, Any]:
         from agents.cvar import cvar_buffer  # noqa: PLC0415 - only this arm
 
         cvar_kwargs = cvar_buffer(
-            args.total_timesteps, args.n_steps, vec_env.num_envs, share=args.cvar_share
+            args.total_timesteps,
+            args.n_steps,
+            vec_env.num_envs,
+            share=args.cvar_share,
+            warmup=args.cvar_warmup,
         )
     model = PPO(
         "MlpPolicy",
@@ -910,7 +918,11 @@ def main(args: TrainArgs) -> dict[str, Any]:
         "n_learners": args.n_learners,
         "opponent_mix": args.opponent_mix,
         "uncertainty": args.uncertainty,
-        **({"cvar_share": args.cvar_share} if args.uncertainty == "cvar" else {}),
+        **(
+            {"cvar_share": args.cvar_share, "cvar_warmup": args.cvar_warmup}
+            if args.uncertainty == "cvar"
+            else {}
+        ),
         "backend": args.backend,
         "car": env_kwargs["car"],
         "track_scale": track_scale(args.car),

@@ -111,11 +111,21 @@ def train_run(args: argparse.Namespace, arm: str, seed: int) -> Path:
             run_name=run,
             progress_bar=sys.stderr.isatty(),
             cvar_share=args.cvar_share,
+            cvar_warmup=args.cvar_warmup,
             nature_every=max(1, args.steps // 10),
             nature_steps=max(1, args.steps // 20),
         )
     )
     return policy
+
+
+def arm_label(args: argparse.Namespace, arm: str) -> str:
+    """An arm's name in the results: ``cvar`` with a share other than 0.5 is ``cvar@S``, and
+    with a warm-up other than 0.2 ``cvar@S,wW``."""
+    if arm != "cvar" or (args.cvar_share == 0.5 and args.cvar_warmup == 0.2):
+        return arm
+    warmup = "" if args.cvar_warmup == 0.2 else f",w{args.cvar_warmup:g}"
+    return f"cvar@{args.cvar_share:g}{warmup}"
 
 
 def score_key(args: argparse.Namespace) -> dict[str, Any]:
@@ -276,6 +286,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     p.add_argument(
         "--cvar-share", type=float, default=0.5, help="the cvar arm's share of slots per update"
     )
+    p.add_argument(
+        "--cvar-warmup", type=float, default=0.2, help="the cvar arm's warm-up share of the budget"
+    )
     p.add_argument("--n-envs", type=int, default=8, help="races per track group")
     p.add_argument("--n-cars", type=int, default=4)
     p.add_argument("--n-steps", type=int, default=64, help="PPO rollout length per slot")
@@ -308,23 +321,24 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         load_track(name)
     runs: dict[str, dict[int, dict[str, dict[str, float]]]] = {}
     earlier_training: dict[str, Any] = {}
+    labels = {arm_label(args, arm) for arm in args.arms}
     if args.runs_from is not None:
         earlier = json.loads(args.runs_from.read_text(encoding="utf-8"))
         earlier_training = {
             run: fig
             for run, fig in earlier.get("training", {}).items()
-            if run.rsplit("_s", 1)[0] not in args.arms
+            if run.rsplit("_s", 1)[0] not in labels
         }
         if list(earlier["eval_tracks"]) != list(args.eval_tracks):
             p.error(f"{args.runs_from} was scored on other tracks: {earlier['eval_tracks']}")
         for arm, seeds in earlier["runs"].items():
-            if arm not in args.arms:
+            if arm not in labels:
                 runs[arm] = {int(s): v for s, v in seeds.items()}
     first = args.first_seed
     for seed in range(first, first + args.seeds):  # seed-major: a run cut short stays balanced
         for arm in args.arms:
             policy = train_run(args, arm, seed)
-            runs.setdefault(arm, {})[seed] = score_run(args, policy)
+            runs.setdefault(arm_label(args, arm), {})[seed] = score_run(args, policy)
     summary = summarise_arms(runs)
     print_table(summary)
     result = {
@@ -350,7 +364,7 @@ def training_figures(out: Path, runs: dict[str, Any]) -> dict[str, dict[str, Any
     figures: dict[str, dict[str, Any]] = {}
     for arm, seeds in runs.items():
         for seed in seeds:
-            path = out / f"{arm}_s{seed}" / "summary.json"
+            path = out / f"{arm.split('@')[0]}_s{seed}" / "summary.json"  # cvar@S: cvar_sN
             if path.is_file():
                 training = json.loads(path.read_text(encoding="utf-8")).get("training", {})
                 figures[f"{arm}_s{seed}"] = {

@@ -154,7 +154,12 @@ def test_the_share_is_the_one_asked_for_and_a_share_outside_zero_to_one_is_refus
 
     kwargs = cvar_buffer(total_timesteps=64_000, n_steps=64, n_envs=10, share=0.75)
     assert kwargs["rollout_buffer_kwargs"]["share"] == 0.75
-    _check(TrainArgs(uncertainty="cvar", cvar_share=1.0))
+    assert cvar_buffer(64_000, 64, 10, warmup=0.0)["rollout_buffer_kwargs"]["warmup_rollouts"] == 0
+    assert cvar_buffer(64_000, 64, 10, warmup=0.5)["rollout_buffer_kwargs"]["warmup_rollouts"] == 50
+    _check(TrainArgs(uncertainty="cvar", cvar_share=1.0, cvar_warmup=0.0))
     for bad in (0.0, 1.5):
         with pytest.raises(PolicyError, match="cvar_share"):
             _check(TrainArgs(uncertainty="cvar", cvar_share=bad))
+    for bad in (-0.1, 1.0):
+        with pytest.raises(PolicyError, match="cvar_warmup"):
+            _check(TrainArgs(uncertainty="cvar", cvar_warmup=bad))
