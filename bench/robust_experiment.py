@@ -344,7 +344,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     result = {
         "command": "python bench/robust_experiment.py " + " ".join(argv or sys.argv[1:]),
         "budget_steps_per_run": args.steps,
-        "training": {**earlier_training, **training_figures(args.out, runs)},
+        "training": {
+            **earlier_training,
+            **training_figures(args.out, {a: s for a, s in runs.items() if a in labels}),
+        },
         "train_tracks": args.train_tracks,
         "eval_tracks": args.eval_tracks,
         "runs": {arm: {str(s): v for s, v in seeds.items()} for arm, seeds in runs.items()},
