@@ -259,9 +259,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     p.add_argument(
         "--runs-from",
         type=Path,
-        default=None,
-        help="take the scores of arms not trained here from this result file (the same "
-        "evaluation tracks, starts and grid; its seeds as they were)",
+        nargs="+",
+        default=[],
+        help="take the runs of these result files (the same evaluation tracks, starts and "
+        "grid): every arm's seeds, merged across files, but for the seeds trained here "
+        "(--seeds 0: train nothing, summarise the files together)",
     )
     p.add_argument("--steps", type=int, default=20_000_000, help="agent-steps per run (budget)")
     p.add_argument("--train-tracks", nargs="+", default=list(TRAIN_TRACKS))
@@ -322,20 +324,19 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     runs: dict[str, dict[int, dict[str, dict[str, float]]]] = {}
     earlier_training: dict[str, Any] = {}
     labels = {arm_label(args, arm) for arm in args.arms}
-    if args.runs_from is not None:
-        earlier = json.loads(args.runs_from.read_text(encoding="utf-8"))
-        earlier_training = {
-            run: fig
-            for run, fig in earlier.get("training", {}).items()
-            if run.rsplit("_s", 1)[0] not in labels
-        }
+    trained = range(args.first_seed, args.first_seed + args.seeds)
+    for path in args.runs_from:
+        earlier = json.loads(path.read_text(encoding="utf-8"))
         if list(earlier["eval_tracks"]) != list(args.eval_tracks):
-            p.error(f"{args.runs_from} was scored on other tracks: {earlier['eval_tracks']}")
+            p.error(f"{path} was scored on other tracks: {earlier['eval_tracks']}")
         for arm, seeds in earlier["runs"].items():
-            if arm not in labels:
-                runs[arm] = {int(s): v for s, v in seeds.items()}
-    first = args.first_seed
-    for seed in range(first, first + args.seeds):  # seed-major: a run cut short stays balanced
+            for seed, scores in seeds.items():
+                if arm not in labels or int(seed) not in trained:  # this run's own win
+                    runs.setdefault(arm, {})[int(seed)] = scores
+                    fig = earlier.get("training", {}).get(f"{arm}_s{seed}")
+                    if fig is not None:
+                        earlier_training[f"{arm}_s{seed}"] = fig
+    for seed in trained:  # seed-major: a run cut short stays balanced
         for arm in args.arms:
             policy = train_run(args, arm, seed)
             runs.setdefault(arm_label(args, arm), {})[seed] = score_run(args, policy)
@@ -346,7 +347,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "budget_steps_per_run": args.steps,
         "training": {
             **earlier_training,
-            **training_figures(args.out, {a: s for a, s in runs.items() if a in labels}),
+            **training_figures(
+                args.out,
+                {a: [s for s in seeds if s in trained] for a, seeds in runs.items() if a in labels},
+            ),
         },
         "train_tracks": args.train_tracks,
         "eval_tracks": args.eval_tracks,
@@ -404,7 +408,14 @@ def plot_arms(result: dict[str, Any], path: Path) -> None:
                 color="black",
                 capsize=4,
             )
-        ax.set_xticks(range(len(arms)), list(arms))
+        crowded = len(arms) > 5  # long names side by side would overlap
+        ax.set_xticks(
+            range(len(arms)),
+            list(arms),
+            rotation=30 if crowded else 0,
+            ha="right" if crowded else "center",
+            fontsize=8 if crowded else 10,
+        )
         ax.set_title(label, fontsize=10)
         ax.grid(alpha=0.3)
     steps = result.get("budget_steps_per_run")
