@@ -1,8 +1,11 @@
-"""Nominal vs domain randomisation vs RARL, trained from scratch on the batched backend.
+"""Nominal vs robust training arms, trained from scratch on the batched backend.
 
 Issue 17's experiment, in one command: for every arm (``--arms``: ``nominal``, ``sample`` —
-domain randomisation over :func:`arena.uncertainty.default_config` —, ``adversarial`` —
-RARL, batched natures) and every seed, ``slipstream train --backend batch`` from scratch with
+domain randomisation over :func:`arena.uncertainty.default_config` —, ``wide`` — the same
+over wider intervals —, ``cvar`` — wide, each PPO update on the worst ``--cvar-share`` of
+its rollout after ``--cvar-warmup`` of the budget (:mod:`agents.cvar`; in the results
+``cvar@S[,wW]`` when not 0.5 and 0.2) —, ``adversarial`` — RARL, batched natures —,
+``robust_mg`` — Zhang et al.'s nature over dynamics and reward) and every seed, ``slipstream train --backend batch`` from scratch with
 the same budget (``--steps`` agent-steps), the same tracks and ``--procedural`` share; then
 every policy is scored on tracks none trained on (``--eval-tracks``: held-out built-ins and
 fresh generated tracks) by ``slipstream robustness --backend batch`` over the full
@@ -15,7 +18,10 @@ loss of nominal score.
 
 Runs already trained (``<out>/<arm>_s<seed>/policy.zip``) and scored (``scores.json`` beside
 it, for the same evaluation settings) are reused, so the command can be stopped and started
-again, and an arm added to a finished experiment costs only its own runs. Usage (the issue's
+again, and an arm added to a finished experiment costs only its own runs; ``--runs-from``
+takes the runs of earlier result files (an arm compared with arms scored before, seeds
+split over processes with ``--first-seed``, or ``--seeds 0`` to summarise files together).
+Usage (the issue's
 budget; hours on 2 CPU cores, minutes on a GPU with ``--device cuda``)::
 
     python bench/robust_experiment.py --steps 20000000 --seeds 5 --out runs/robust_experiment \\
