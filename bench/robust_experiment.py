@@ -5,16 +5,17 @@ domain randomisation over :func:`arena.uncertainty.default_config` —, ``wide``
 over wider intervals —, ``cvar`` — wide, each PPO update on the worst ``--cvar-share`` of
 its rollout after ``--cvar-warmup`` of the budget (:mod:`agents.cvar`; in the results
 ``cvar@S[,wW]`` when not 0.5 and 0.2) —, ``adversarial`` — RARL, batched natures —,
-``robust_mg`` — Zhang et al.'s nature over dynamics and reward) and every seed, ``slipstream train --backend batch`` from scratch with
-the same budget (``--steps`` agent-steps), the same tracks and ``--procedural`` share; then
-every policy is scored on tracks none trained on (``--eval-tracks``: held-out built-ins and
-fresh generated tracks) by ``slipstream robustness --backend batch`` over the full
-perturbation grid (:data:`agents.robustness.GRID`, from ``--starts``). Per run and track:
-nominal score, worst-10 % mean (CVaR₁₀) and the share of grid races not finished; per arm:
-the mean over seeds of the per-track mean, with a 95 % t-interval, and for each robust arm a
-paired t-test against ``nominal`` (seeds paired by index). The goal of the issue is printed
-beside: worst-10 % mean ≥ 1.25 × nominal arm's with non-overlapping intervals, at ≤ 5 %
-loss of nominal score.
+``robust_mg`` — Zhang et al.'s nature over dynamics and reward) and every seed, ``slipstream
+train --backend batch`` from scratch with the same budget (``--steps`` agent-steps), the
+same tracks and ``--procedural`` share; then every policy is scored on tracks none trained
+on (``--eval-tracks``: held-out built-ins and fresh generated tracks) by ``slipstream
+robustness --backend batch`` over the full perturbation grid
+(:data:`agents.robustness.GRID`, from ``--starts``). Per run and track: nominal score,
+worst-10 % mean (CVaR₁₀) and the share of grid races not finished; per arm: the mean over
+seeds of the per-track mean, with a 95 % t-interval, and for each robust arm a paired t-test
+against ``nominal`` (seeds paired by index). The goal of the issue is printed beside:
+worst-10 % mean ≥ 1.25 × nominal arm's with non-overlapping intervals, at ≤ 5 % loss of
+nominal score.
 
 Runs already trained (``<out>/<arm>_s<seed>/policy.zip``) and scored (``scores.json`` beside
 it, for the same evaluation settings) are reused, so the command can be stopped and started
