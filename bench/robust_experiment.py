@@ -28,10 +28,11 @@ budget; hours on 2 CPU cores, minutes on a GPU with ``--device cuda``)::
     python bench/robust_experiment.py --steps 20000000 --seeds 5 --out runs/robust_experiment \\
         --json bench/results/robust_experiment.json
 
-A smoke run that checks the pipeline end to end (about a minute)::
+A smoke run that checks the pipeline end to end (70 s on 2 vCPUs; every arm: a few
+minutes)::
 
-    python bench/robust_experiment.py --steps 4096 --seeds 2 --eval-tracks bean \\
-        --out /tmp/robust_smoke --grid-small
+    python bench/robust_experiment.py --arms nominal cvar --steps 4096 --seeds 2 \\
+        --eval-tracks random:9001 --out /tmp/robust_smoke --grid-small
 """
 
 from __future__ import annotations
