@@ -64,10 +64,6 @@ class WorstShareRolloutBuffer(RolloutBuffer):
         self.kept: np.ndarray = np.arange(self.n_envs)
         self._rows: np.ndarray = np.arange(self.buffer_size * self.n_envs)
 
-    def reset(self) -> None:
-        super().reset()
-        self._rows = np.arange(self.buffer_size * self.n_envs)
-
     def select(self) -> np.ndarray:
         """The slots the update trains on: during the warm-up every one, then the
         ``ceil(share · n_envs)`` with the lowest summed reward over the rollout (ties: the

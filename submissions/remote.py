@@ -401,9 +401,9 @@ class SandboxedPolicy:
         """
         if self._proc is not None:
             return
-        self._spin_limit = spin_limit_s()  # a malformed setting fails before anything starts
-        self._spin_s = 0.0
-        self._hold_wakeups()  # first: a malformed setting fails before any process starts
+        # First the settings: a malformed one fails before anything is held or started.
+        self._spin_limit, self._spin_s = spin_limit_s(), 0.0
+        self._hold_wakeups()
         self.failure = None
         self.bank = self.limits.overage_s
         self._ready = False
