@@ -162,8 +162,11 @@ def default_runner(
     sandbox_mode()  # fail closed before any race is claimed
     check_settings()  # a malformed scheduling setting likewise
     # Job processes (and their sandboxes) stay warm between batches: a bundle raced again
-    # soon after skips its sandbox's start-up (Worker.close ends them).
-    return make_executor(ray_address=ray_address, workers=workers, keep_warm_s=KEEP_WARM_S)
+    # soon after skips its sandbox's start-up (Worker.close ends them). They start now, so
+    # the first race claimed does not wait for them.
+    executor = make_executor(ray_address=ray_address, workers=workers, keep_warm_s=KEEP_WARM_S)
+    executor.prestart()
+    return executor
 
 
 class Worker:

@@ -21,6 +21,7 @@ fallback (logged; every result then records ``sandbox: seccomp-weak``).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
 import tempfile
@@ -176,32 +177,35 @@ def evaluate_command(args: argparse.Namespace) -> int:
     sandbox_mode()  # fail closed here, in one line, before anything runs
     check_settings()  # and a malformed scheduling setting likewise
     bundle = args.bundle.resolve()
-    with tempfile.TemporaryDirectory(prefix="slipstream-check-") as tmp:
-        opened = open_bundle(bundle, Path(tmp) / "bundle")  # fail fast, clearly
-        manifest = opened.manifest
-        if manifest.format == "slipstream":  # data only: its meta.json names the car it learned
-            from agents.loading import checkpoint_car_mismatch
-
-            mismatch = checkpoint_car_mismatch(opened.entry_path, manifest.car)
-            if mismatch is not None:  # the races run the manifest's car
-                print(f"slipstream: warning: {mismatch}", file=sys.stderr)
-    out = (args.out or Path("artifacts") / "evaluate" / manifest.name).resolve()
-    jobs = build_jobs(args, bundle, manifest.name, out)
     timeout = JOB_TIMEOUT_S if args.job_timeout is None else args.job_timeout
     if not timeout > 0:
         raise SubmissionError(f"--job-timeout must be positive, not {args.job_timeout}")
-    # The job processes stay warm from the validation race to the races: the bundle's
-    # sandboxes start once per process (closed when the block ends, however it ends).
+    # The job processes start now, while the bundle is checked, and stay warm from the
+    # validation race to the races: the bundle's sandboxes start once per process (all
+    # closed when the block ends, however it ends).
     executor = make_executor(
         args.ray_address, workers=args.workers, job_timeout_s=timeout, keep_warm_s=KEEP_WARM_S
     )
     to_stdout = args.json == "-"
     console = Console(stderr=to_stdout)
     results: list[Any] = []
-    with (
-        executor,
-        progress_bar(console, "[bold]evaluating[/] {task.description}", "races") as bar,
-    ):
+    with contextlib.ExitStack() as stack:
+        stack.enter_context(executor)
+        executor.prestart()
+        with tempfile.TemporaryDirectory(prefix="slipstream-check-") as tmp:
+            opened = open_bundle(bundle, Path(tmp) / "bundle")  # fail fast, clearly
+            manifest = opened.manifest
+            if manifest.format == "slipstream":  # data only: meta.json names the car it learned
+                from agents.loading import checkpoint_car_mismatch
+
+                mismatch = checkpoint_car_mismatch(opened.entry_path, manifest.car)
+                if mismatch is not None:  # the races run the manifest's car
+                    print(f"slipstream: warning: {mismatch}", file=sys.stderr)
+        out = (args.out or Path("artifacts") / "evaluate" / manifest.name).resolve()
+        jobs = build_jobs(args, bundle, manifest.name, out)
+        bar = stack.enter_context(
+            progress_bar(console, "[bold]evaluating[/] {task.description}", "races")
+        )
         task = bar.add_task(f"{manifest.name}: validation", total=len(jobs))
         (validation,) = executor.run(jobs[:1])
         bar.update(task, completed=1, description=f"{manifest.name}: races")

@@ -27,7 +27,10 @@ the channel        inherited descriptors only: its own sealed memfd (mapped shar
 processes          pid namespace (sees only itself), cgroup    ONE process: ``fork``/``vfork``/
                    ``pids.max`` (root) or ``RLIMIT_NPROC``     ``clone`` without ``CLONE_THREAD``
                                                                refused (threads allowed);
-                                                               ``setsid``/``setpgid`` refused
+                                                               ``setsid``/``setpgid`` refused;
+                                                               signals, ``prlimit``, pidfds of
+                                                               itself only (the sandboxes share
+                                                               a uid: :func:`seccomp_filter`)
 identity           uid/gid 65534 in a user namespace, no       uid/gid 65534 on the host (when
                    capabilities, new session, cleared env      the runner is root), no groups,
                                                                every capability dropped (bounding
@@ -351,9 +354,30 @@ _DENIED_FALLBACK = (  # host metadata and host processes: bwrap shows the policy
 _CLONE_THREAD = 0x00010000
 
 
-@functools.cache
-def seccomp_filter(mode: str) -> bytes:
+_OWN_PID_ONLY = (  # fallback: these act on the process given first; only on the worker's own
+    "kill",  # (0 or -1 included: its group, every process it may signal)
+    "tkill",
+    "tgkill",
+    "rt_sigqueueinfo",
+    "rt_tgsigqueueinfo",
+    "pidfd_open",
+)
+_SELF_ZERO_ONLY = ("prlimit64", "get_robust_list", "migrate_pages", "move_pages")  # pid 0: itself
+_CROSS_PROCESS = ("kcmp", "pidfd_getfd", "process_madvise")  # another process's files/memory
+
+
+@functools.lru_cache(maxsize=16)  # bwrap's is one program; the fallback's, one per worker
+def seccomp_filter(mode: str, pid: int | None = None) -> bytes:
     """The seccomp BPF program for ``mode`` (built with libseccomp on the trusted side).
+
+    In the fallback every sandbox runs as the same unprivileged uid, so what one process
+    may do to another of its uid would reach the race's other sandboxes (and any host
+    process of that uid): signals, rlimits (``prlimit64``), another process's files or
+    memory. Landlock scopes signals and ptrace-like access where the kernel has it (signals
+    from ABI 6 on, not ``prlimit64`` at all); the filter refuses them whatever the kernel:
+    the signal calls and ``pidfd_open`` only on ``pid`` (the worker itself; the filter is
+    built once it is known: :class:`SandboxProcess` hands it over after the start), the
+    others only on pid 0 (itself), ``kcmp``/``pidfd_getfd``/``process_madvise`` never.
 
     Raises:
         SandboxError: libseccomp (``pyseccomp``) is not available.
@@ -377,15 +401,23 @@ def seccomp_filter(mode: str) -> bytes:
         for name in ("sched_setscheduler", "sched_setparam", "sched_setaffinity"):
             filt.add_rule(eperm, name, sc.Arg(0, sc.NE, 0))
         filt.add_rule(eperm, "setpriority", sc.Arg(1, sc.NE, 0))
+        if pid is None:
+            raise SandboxError("the fallback's filter needs the worker's pid")
+        for name in _OWN_PID_ONLY:
+            _deny(filt, eperm, name, sc.Arg(0, sc.NE, pid))
+        for name in _SELF_ZERO_ONLY:
+            _deny(filt, eperm, name, sc.Arg(0, sc.NE, 0))
+        for name in _CROSS_PROCESS:
+            _deny(filt, eperm, name)
     with tempfile.TemporaryFile() as fh:
         filt.export_bpf(fh)
         fh.seek(0)
         return fh.read()
 
 
-def _deny(filt: object, action: object, name: str) -> None:
+def _deny(filt: object, action: object, name: str, *args: object) -> None:
     try:
-        filt.add_rule(action, name)  # type: ignore[attr-defined]
+        filt.add_rule(action, name, *args)  # type: ignore[attr-defined]
     except (RuntimeError, ValueError, OSError):  # a syscall this architecture does not have
         log.debug("seccomp: no syscall %s on this architecture", name)
 
@@ -412,7 +444,7 @@ def apply_seccomp(program: bytes) -> None:
     class SockFprog(ctypes.Structure):
         _fields_ = [("len", ctypes.c_ushort), ("filter", ctypes.c_void_p)]
 
-    if len(program) % 8:
+    if not program or len(program) % 8:  # empty: the host never wrote it (it failed)
         raise SandboxError("seccomp program is not a whole number of instructions")
     buf = ctypes.create_string_buffer(program, len(program))
     prog = SockFprog(len(program) // 8, ctypes.addressof(buf))
@@ -974,12 +1006,15 @@ class SandboxProcess:
         )
         self.folder.mkdir(mode=0o711)
         self.cgroups = CgroupCaps.create(self.id, limits)
-        filter_fd = -1
+        filter_fd = later = -1  # bwrap reads its filter at its start; the fallback's
+        # worker reads a pipe to its end, written once its pid is known (seccomp_filter)
         try:
-            program = seccomp_filter(self.mode)
-            filter_fd = os.memfd_create("slipstream-seccomp", os.MFD_CLOEXEC)
-            os.write(filter_fd, program)
-            os.lseek(filter_fd, 0, os.SEEK_SET)
+            if self.mode == "bwrap":
+                filter_fd = os.memfd_create("slipstream-seccomp", os.MFD_CLOEXEC)
+                os.write(filter_fd, seccomp_filter(self.mode))
+                os.lseek(filter_fd, 0, os.SEEK_SET)
+            else:
+                filter_fd, later = os.pipe()
             args = [*worker_args, "--sandbox-id", self.id, "--mode", self.mode]
             if self.mode == "bwrap":
                 cmd = bwrap_command(args, bundle_root, limits, filter_fd)
@@ -1003,6 +1038,11 @@ class SandboxProcess:
             )
             uid = self.identity.uid if self.identity is not None else os.geteuid()
             (self.folder / "pgid").write_text(f"{self.proc.pid} {uid}\n")
+            os.close(filter_fd)
+            filter_fd = -1
+            if later >= 0:  # the worker waits for it before it reads anything of the bundle
+                with contextlib.suppress(BrokenPipeError):  # it died: seen as a crash
+                    os.write(later, seccomp_filter(self.mode, pid=self.proc.pid))
         except (OSError, subprocess.SubprocessError, shutil.Error) as err:
             self._cleanup()
             raise SandboxError(f"could not start the sandbox ({self.mode}): {err}") from err
@@ -1010,8 +1050,9 @@ class SandboxProcess:
             self._cleanup()
             raise
         finally:
-            if filter_fd >= 0:
-                os.close(filter_fd)
+            for fd in (filter_fd, later):
+                if fd >= 0:
+                    os.close(fd)
 
     def _prepare_fallback(self, root: Path) -> Path:
         """The fallback's folders: ``bundle/`` (read-only), ``.app/``, ``work/`` (writable)."""

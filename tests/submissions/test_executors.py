@@ -165,6 +165,39 @@ def test_idle_processes_are_kept_warm_between_runs_then_ended(tmp_path: Path) ->
     assert brief.warm == 0 and scratch_folders(os.getpid()) == []
 
 
+def test_prestarted_processes_run_the_first_jobs_and_are_reaped(tmp_path: Path) -> None:
+    # slipstream evaluate and the leaderboard worker start their job processes before the
+    # first run (while the bundle is checked): the run hands its jobs to those processes,
+    # already started, instead of spawning its own.
+    executor = LocalExecutor(workers=2, fn=fake_result, keep_warm_s=30.0)
+    assert executor.prestart(wait_s=60.0) == 2
+    started = {w.process.pid for w in executor._warm}
+    assert all(w.ready for w in executor._warm) and len(scratch_folders(os.getpid())) == 2
+    assert executor.prestart() == 2  # idempotent: still two, the same two
+    assert {w.process.pid for w in executor._warm} == started
+    results = list(executor.run(make_jobs(tmp_path, 4)))
+    assert all(r.ok for r in results) and {r.result["pid"] for r in results} == started
+    # One of them dies while idle: the next prestart replaces it, the run never sees it.
+    dead = executor._warm[0].process
+    os.kill(dead.pid, signal.SIGKILL)
+    dead.join()
+    assert executor.prestart(wait_s=60.0) == 2 and dead.pid not in {
+        w.process.pid for w in executor._warm
+    }
+    assert len(scratch_folders(os.getpid())) == 2  # the dead one's folder reaped
+    executor.close()
+    assert executor.warm == 0 and scratch_folders(os.getpid()) == []
+    # Not taken within keep_warm_s: ended by the timer, like a run's idle processes.
+    brief = LocalExecutor(workers=1, fn=fake_result, keep_warm_s=0.3)
+    brief.prestart()
+    deadline = time.monotonic() + 10
+    while (brief.warm or scratch_folders(os.getpid())) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert brief.warm == 0 and scratch_folders(os.getpid()) == []
+    # Ray starts nothing here.
+    assert RayExecutor("ray://nowhere:1").prestart() == 0
+
+
 def test_stopping_early_kills_running_jobs(tmp_path: Path) -> None:
     gen = LocalExecutor(workers=2, fn=sleep_unless_first).run(make_jobs(tmp_path, 2))
     assert next(gen).job_id == "job0"

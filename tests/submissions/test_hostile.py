@@ -16,6 +16,7 @@ import json
 import os
 import shutil
 import socket
+import subprocess
 import tempfile
 import textwrap
 import threading
@@ -26,11 +27,14 @@ from pathlib import Path
 
 import pytest
 
+from agents.baselines import make_baseline
+from agents.loading import DEFAULT_LAYOUT
+from arena.race import run_race
 from submissions.bundle import Bundle
 from submissions.executors import LocalExecutor
 from submissions.jobs import Entrant, RaceJob
 from submissions.remote import SandboxedPolicy
-from submissions.sandbox import CGROUP_ROOT, SandboxLimits
+from submissions.sandbox import CGROUP_ROOT, SANDBOX_UID, SandboxLimits
 
 from .conftest import FAST, MakeBundle, race_against_pursuit, sandbox_processes
 
@@ -434,11 +438,23 @@ def attacks_of(policy: SandboxedPolicy) -> dict[str, str]:
     return dict(json.loads(line[len("ATTACKS ") :]))
 
 
-def race_attack(make_python_bundle: MakeBundle, attack_body: str) -> tuple[SandboxedPolicy, dict]:
+def race_attack(
+    make_python_bundle: MakeBundle, attack_body: str, opponent: SandboxedPolicy | None = None
+) -> tuple[SandboxedPolicy, dict]:
+    """Race a policy running ``attack_body`` on its third step against pursuit (and
+    ``opponent``, which must finish too); the attacks' outcomes."""
     body = ATTACK_HELPERS + "\nclass Policy(Driver):\n    def attack(self, obs):\n"
     body += textwrap.indent(textwrap.dedent(attack_body), " " * 8)
     policy = SandboxedPolicy(make_python_bundle(body), FAST)
-    check_contained(policy, ("finished", None))  # it kept driving: honest outcome
+    if opponent is None:
+        check_contained(policy, ("finished", None))  # it kept driving: honest outcome
+        return policy, attacks_of(policy)
+    cars = [policy, opponent, make_baseline("pursuit", DEFAULT_LAYOUT)]
+    result, _ = run_race(cars, track="oval", laps=1, seed=0, record=False)
+    statuses = [(c.status, c.dnf_reason) for c in result.cars]
+    assert statuses == [("finished", None)] * 3, (statuses, opponent.output[-2000:])
+    assert policy.sandbox_id is not None
+    assert sandbox_processes(policy.sandbox_id) == []
     return policy, attacks_of(policy)
 
 
@@ -545,6 +561,61 @@ def test_ipc_neither_reads_the_host_nor_outlives_the_race(
         assert not mine & _sysv_keys(kind), kind
     libc = ctypes.CDLL(None, use_errno=True)
     assert libc.mq_open(b"/slipstream-leak", 0, 0, None) == -1  # no queue left on the host
+
+
+def test_sibling_sandboxes_and_host_processes_of_its_uid_are_out_of_reach(
+    mode: str, make_python_bundle: MakeBundle
+) -> None:
+    # In the fallback every sandbox runs as uid 65534: whatever one process may do to
+    # another of its uid — signal it, set its rlimits, open a pidfd on it — would reach the
+    # race's other sandboxes (an opponent's worker killed or starved of CPU: a DNF bought)
+    # and any host process of that uid. An attacker who read the source knows the pids are
+    # near its own; here it is even handed the honest sandbox's pid and a host process of
+    # its uid. Each attempt is refused, the honest sandboxed car finishes, the host process
+    # lives (in bwrap the pids are not even in its namespace).
+    root = os.geteuid() == 0
+    canary = subprocess.Popen(  # a host process of the sandbox's uid (nobody), if root
+        ["sleep", "120"], user=SANDBOX_UID if root else None, group=SANDBOX_UID if root else None
+    )
+    honest = SandboxedPolicy(
+        make_python_bundle("class Policy(Driver):\n    pass\n", "honest"), FAST
+    )
+    try:
+        honest.start()
+        assert honest._proc is not None
+        targets = [honest._proc.pid, canary.pid]
+        attack = f"""
+        import resource, signal
+        LIBC.prlimit.argtypes = [ctypes.c_int, ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p]
+        class RL(ctypes.Structure):
+            _fields_ = [("cur", ctypes.c_ulong), ("max", ctypes.c_ulong)]
+        one_second = RL(1, 1)
+        results = {{}}
+        for n, pid in enumerate({targets!r}):
+            results[f"kill-{{n}}"] = outcome(lambda: os.kill(pid, signal.SIGKILL))
+            results[f"stop-{{n}}"] = outcome(lambda: os.kill(pid, signal.SIGSTOP))
+            results[f"tgkill-{{n}}"] = outcome(lambda: c_call("tgkill", pid, pid, 9))
+            results[f"prlimit-cpu-{{n}}"] = outcome(
+                lambda: c_call("prlimit", pid, resource.RLIMIT_CPU, ctypes.byref(one_second), None))
+            results[f"pidfd-{{n}}"] = outcome(lambda: os.pidfd_open(pid))
+        results["kill-all"] = outcome(lambda: os.kill(-1, signal.SIGSTOP))
+        me = os.getpid()
+        near = [p for p in range(max(2, me - 500), me + 500) if p != me]
+        results["kill-near"] = sum(outcome(lambda: os.kill(p, 0)).startswith("DONE") for p in near)
+        report(results)
+        """
+        policy, results = race_attack(make_python_bundle, attack, opponent=honest)
+        assert policy.mode == honest.mode == mode
+        near = results.pop("kill-near")
+        assert near == 0, results  # not one process near its pid could it signal
+        refused = {k: v for k, v in results.items() if k != "kill-all"}
+        assert all(v.startswith("refused") for v in refused.values()), results
+        assert canary.poll() is None  # alive, and not stopped:
+        assert Path(f"/proc/{canary.pid}/stat").read_text().split(") ")[1][0] == "S"
+    finally:
+        honest.shutdown()
+        canary.kill()
+        canary.wait()
 
 
 def test_runner_listeners_and_secrets_are_out_of_reach(

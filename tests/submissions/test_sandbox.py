@@ -790,3 +790,73 @@ def test_the_fallback_reads_and_writes_only_its_lists(tmp_path: Path) -> None:
         *sandbox.package_dirs().values(), str(app), str(bundle), "/dev/urandom",
     ]  # fmt: skip
     assert write == [str(work), "/dev/null"]
+
+
+CROSS_PROCESS_PROBE = """
+import ctypes, errno, json, os, resource, signal, sys, threading
+from submissions.sandbox import apply_seccomp, seccomp_filter
+
+target = int(sys.argv[1])
+libc = ctypes.CDLL(None, use_errno=True)
+libc.prlimit.argtypes = [ctypes.c_int, ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p]
+old = (ctypes.c_ulong * 2)()
+
+def outcome(fn):
+    try:
+        fn()
+    except OSError as err:
+        return errno.errorcode.get(err.errno, str(err.errno))
+    return "done"
+
+def c_call(name, *args):
+    if getattr(libc, name)(*args) == -1:
+        raise OSError(ctypes.get_errno(), name)
+
+def attempts(pid):
+    return {
+        "kill": outcome(lambda: os.kill(pid, 0)),
+        "tgkill": outcome(lambda: c_call("tgkill", pid, pid, 0)),
+        "prlimit": outcome(lambda: c_call("prlimit", pid, resource.RLIMIT_CPU, None, old)),
+        "pidfd_open": outcome(lambda: os.close(os.pidfd_open(pid))),
+        "kcmp": outcome(lambda: c_call("syscall", 312, os.getpid(), pid, 0, 0, 0)),
+    }
+
+before = attempts(target)
+apply_seccomp(seccomp_filter("seccomp", pid=os.getpid()))
+print(json.dumps({
+    "before": before,
+    "other": attempts(target),
+    "every": outcome(lambda: os.kill(-1, 0)),
+    "own-kill": outcome(lambda: os.kill(os.getpid(), 0)),
+    "own-thread": outcome(lambda: signal.pthread_kill(threading.get_ident(), 0)),
+    "own-rlimit": outcome(lambda: resource.setrlimit(resource.RLIMIT_CORE, (0, 0))),
+    "own-pidfd": outcome(lambda: os.close(os.pidfd_open(os.getpid()))),
+}))
+"""
+
+
+@pytest.mark.skipif(sys.platform != "linux" or os.uname().machine != "x86_64", reason="x86-64")
+def test_fallback_filter_refuses_other_processes_whatever_landlock_allows() -> None:
+    # The fallback's sandboxes share one uid, and Landlock scopes signals only from ABI 6 on
+    # (and rlimits never): the seccomp filter alone must keep a worker from signalling,
+    # re-limiting, opening a pidfd on or comparing itself with another process — checked
+    # here on a process of the probe's own uid (where the kernel would allow all of it,
+    # as "before" shows) with the filter and nothing else — and still let it act on itself.
+    target = subprocess.Popen(["sleep", "60"])
+    try:
+        probe = subprocess.run(
+            [sys.executable, "-c", CROSS_PROCESS_PROBE, str(target.pid)],
+            capture_output=True,
+            text=True,
+            timeout=60,
+            check=True,
+        )
+    finally:
+        target.kill()
+        target.wait()
+    got = json.loads(probe.stdout)
+    assert set(got["before"].values()) == {"done"}, got  # the kernel allows it unfiltered
+    assert set(got["other"].values()) == {"EPERM"}, got
+    assert got["every"] == "EPERM"
+    for own in ("own-kill", "own-thread", "own-rlimit", "own-pidfd"):
+        assert got[own] == "done", got
