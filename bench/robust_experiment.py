@@ -337,9 +337,16 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         earlier = json.loads(path.read_text(encoding="utf-8"))
         if list(earlier["eval_tracks"]) != list(args.eval_tracks):
             p.error(f"{path} was scored on other tracks: {earlier['eval_tracks']}")
+        if earlier.get("budget_steps_per_run") != args.steps:  # arms compare at one budget
+            p.error(
+                f"{path} trained {earlier.get('budget_steps_per_run')} steps a run, "
+                f"not --steps {args.steps}"
+            )
         for arm, seeds in earlier["runs"].items():
             for seed, scores in seeds.items():
                 if arm not in labels or int(seed) not in trained:  # this run's own win
+                    if int(seed) in runs.get(arm, {}):
+                        p.error(f"{path}: {arm} seed {seed} is in an earlier file too")
                     runs.setdefault(arm, {})[int(seed)] = scores
                     fig = earlier.get("training", {}).get(f"{arm}_s{seed}")
                     if fig is not None:

@@ -18,7 +18,10 @@ managers).
   how long a policy's process, and its memory, lives). With ``keep_warm_s`` > 0 the idle
   processes (and their sandboxes) outlive ``run`` by that long, for the next ``run`` (the
   validation race of ``slipstream evaluate`` and its races, the leaderboard worker's
-  successive batches); ``close()`` ends them at once.
+  successive batches); ``close()`` ends them at once. :meth:`LocalExecutor.prestart` starts
+  them before the first run (``evaluate`` while it checks the bundle, the worker when it
+  starts), and a job process imports the race machinery before it says it is ready
+  (:func:`submissions.jobs.preload`), so no race waits for a process's start-up.
   A process holds one job at a time, so a job that kills its worker — a segfault in the
   physics, the OOM killer, ``os._exit`` — is attributed to that job alone: it is run again
   up to ``max_retries`` times, and the other jobs are untouched (they were never in that
