@@ -30,7 +30,8 @@ processes          pid namespace (sees only itself), cgroup    ONE process: ``fo
                                                                ``setsid``/``setpgid`` refused;
                                                                signals, ``prlimit``, pidfds of
                                                                itself only (the sandboxes share
-                                                               a uid: :func:`seccomp_filter`)
+                                                               a uid: :func:`seccomp_filter`);
+                                                               its parent-death signal fixed
 identity           uid/gid 65534 in a user namespace, no       uid/gid 65534 on the host (when
                    capabilities, new session, cleared env      the runner is root), no groups,
                                                                every capability dropped (bounding
@@ -364,6 +365,7 @@ _OWN_PID_ONLY = (  # fallback: these act on the process given first; only on the
 )
 _SELF_ZERO_ONLY = ("prlimit64", "get_robust_list", "migrate_pages", "move_pages")  # pid 0: itself
 _CROSS_PROCESS = ("kcmp", "pidfd_getfd", "process_madvise")  # another process's files/memory
+_PR_SET_PDEATHSIG = 1
 
 
 @functools.lru_cache(maxsize=16)  # bwrap's is one program; the fallback's, one per worker
@@ -409,6 +411,8 @@ def seccomp_filter(mode: str, pid: int | None = None) -> bytes:
             _deny(filt, eperm, name, sc.Arg(0, sc.NE, 0))
         for name in _CROSS_PROCESS:
             _deny(filt, eperm, name)
+        # Its parent-death signal stays: cleared, a policy's thread outlived a SIGKILLed host.
+        filt.add_rule(eperm, "prctl", sc.Arg(0, sc.EQ, _PR_SET_PDEATHSIG))
     with tempfile.TemporaryFile() as fh:
         filt.export_bpf(fh)
         fh.seek(0)

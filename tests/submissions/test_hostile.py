@@ -17,9 +17,11 @@ import os
 import shutil
 import socket
 import subprocess
+import sys
 import tempfile
 import textwrap
 import threading
+import time
 from collections.abc import Callable, Iterator
 from dataclasses import replace
 from multiprocessing import shared_memory
@@ -30,13 +32,21 @@ import pytest
 from agents.baselines import make_baseline
 from agents.loading import DEFAULT_LAYOUT
 from arena.race import run_race
-from submissions.bundle import Bundle
+from submissions import sandbox
+from submissions.bundle import Bundle, make_bundle
 from submissions.executors import LocalExecutor
 from submissions.jobs import Entrant, RaceJob
 from submissions.remote import SandboxedPolicy
 from submissions.sandbox import CGROUP_ROOT, SANDBOX_UID, SandboxLimits
 
-from .conftest import FAST, MakeBundle, race_against_pursuit, sandbox_processes
+from .conftest import (
+    FAST,
+    MakeBundle,
+    manifest_for,
+    python_source,
+    race_against_pursuit,
+    sandbox_processes,
+)
 
 pytestmark = pytest.mark.slow
 
@@ -616,6 +626,63 @@ def test_sibling_sandboxes_and_host_processes_of_its_uid_are_out_of_reach(
         honest.shutdown()
         canary.kill()
         canary.wait()
+
+
+LINGERING_HOST = """
+import sys, time
+from pathlib import Path
+from submissions.bundle import open_bundle
+from submissions.remote import SandboxedPolicy
+from submissions.sandbox import SandboxLimits
+
+policy = SandboxedPolicy(open_bundle(Path(sys.argv[1]), Path(sys.argv[2])),
+                         SandboxLimits(startup_s=60.0))
+policy.start()
+policy.reset(0)  # its policy loaded (READY), then reset: it runs
+print(policy.sandbox_id, flush=True)
+time.sleep(600)
+"""
+
+
+def test_a_policy_cannot_outlive_its_sigkilled_host(mode: str, tmp_path: Path) -> None:
+    # Someone who read worker.py knows the sandbox dies with its host by a parent-death
+    # signal (fallback) and ends when the ring closes: the policy clears the signal
+    # (prctl(PR_SET_PDEATHSIG, 0)) and starts a non-daemon thread that never ends, then its
+    # host is SIGKILLed (no clean-up runs). Nothing of the sandbox may live on: the prctl is
+    # refused in the fallback, and the worker leaves with os._exit, whatever its threads do.
+    body = """
+    import ctypes, threading
+
+    class Policy(Driver):
+        def __init__(self, env_spec):
+            super().__init__(env_spec)
+            cleared = ctypes.CDLL(None, use_errno=True).prctl(1, 0, 0, 0, 0)
+            print("PDEATHSIG", cleared, flush=True)
+            threading.Thread(target=lambda: [time.sleep(0.2) for _ in iter(int, 1)]).start()
+    """
+    zipped = make_bundle(
+        tmp_path / "linger.zip",
+        manifest_for("linger"),
+        {"agent.py": python_source(body).encode()},
+    )
+    host = subprocess.Popen(
+        [sys.executable, "-c", LINGERING_HOST, str(zipped), str(tmp_path / "linger")],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert host.stdout is not None
+        sandbox_id = host.stdout.readline().strip()
+        assert sandbox_id and sandbox_processes(sandbox_id)  # started, alive
+    finally:
+        host.kill()
+        host.wait()
+    deadline = time.monotonic() + 10
+    while sandbox_processes(sandbox_id) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    left = sandbox_processes(sandbox_id)
+    sandbox.reap_stale()  # the folder a SIGKILLed host leaves is the next run's to reap
+    assert left == [], f"sandbox processes outlived their host: {left}"
 
 
 def test_runner_listeners_and_secrets_are_out_of_reach(
