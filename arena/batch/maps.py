@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -39,7 +40,12 @@ LIDAR_CELL = 0.2  # m: lidar table grid
 LIDAR_BINS = 180  # directions of the lidar table (2° apart)
 MARGIN = 1.5  # m of grid beyond the walls
 LIDAR_REACH = 0.6  # m beyond the walls where the lidar table still has rows
-_CACHE: dict[tuple[object, ...], TrackMaps] = {}
+CACHE_BYTES = 256 << 20  # maps a process keeps for reuse, bytes (10–40 MB a track)
+# Least recently used first, the newest always kept. Bounded: training on generated tracks
+# draws a new one every few rollouts, and an unbounded cache held every map ever built (a
+# 4 M-step run grew by ~5 GB, 1.2 KB a step; 20 M steps would not fit 24 GiB). A simulator
+# keeps its own maps alive whatever the cache drops.
+_CACHE: OrderedDict[tuple[object, ...], TrackMaps] = OrderedDict()
 
 
 @dataclass(frozen=True)
@@ -113,12 +119,20 @@ class TrackMaps:
         lidar_cell: float = LIDAR_CELL,
         lidar_bins: int = LIDAR_BINS,
     ) -> TrackMaps:
-        """The maps of ``track`` (cached per process by the track's geometry)."""
+        """The maps of ``track`` (cached per process by the track's geometry: the most
+        recently used, up to :data:`CACHE_BYTES`)."""
         digest = hashlib.sha1(track.centre.tobytes() + track.width_left.tobytes()).hexdigest()
         key = (digest, track.width_right.tobytes(), runoff, max_range, cell, lidar_cell, lidar_bins)
-        if key not in _CACHE:
-            _CACHE[key] = cls._build(track, runoff, max_range, cell, lidar_cell, lidar_bins)
-        return _CACHE[key]
+        maps = _CACHE.get(key)
+        if maps is None:
+            maps = cls._build(track, runoff, max_range, cell, lidar_cell, lidar_bins)
+            _CACHE[key] = maps
+            held = sum(m.nbytes for m in _CACHE.values())
+            while held > CACHE_BYTES and len(_CACHE) > 1:
+                held -= _CACHE.popitem(last=False)[1].nbytes
+        else:
+            _CACHE.move_to_end(key)
+        return maps
 
     @classmethod
     def _build(

@@ -146,3 +146,30 @@ def test_pursuit_drives_through_real_track_hairpins_on_pybullet() -> None:
     )
     env.close()
     assert result.cars[0].status == "finished", result.cars[0].dnf_reason
+
+
+def test_the_maps_cache_is_bounded_and_keeps_the_most_recent(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # Training on generated tracks (`--procedural`) builds maps for a new track every few
+    # rollouts; an unbounded cache kept every one (10–40 MB each): a 4 M-step run grew by
+    # ~5 GB and was killed for memory. The cache now drops the least recently used maps
+    # past its byte budget; what it drops is rebuilt when asked for again.
+    from arena.batch import maps as maps_module
+    from tracks import load_track
+
+    monkeypatch.setattr(maps_module, "_CACHE", maps_module.OrderedDict())
+    tracks = [load_track(f"random:{seed}:length=100") for seed in (11, 12, 13, 14)]
+    first = TrackMaps.build(tracks[0])
+    monkeypatch.setattr(maps_module, "CACHE_BYTES", int(2.5 * first.nbytes))
+    built = [first] + [TrackMaps.build(t) for t in tracks[1:]]
+    cache = maps_module._CACHE
+    assert sum(m.nbytes for m in cache.values()) <= maps_module.CACHE_BYTES
+    assert built[-1] in cache.values() and first not in cache.values()
+    assert TrackMaps.build(tracks[-1]) is built[-1]  # still cached: the same maps
+    again = TrackMaps.build(tracks[0])  # dropped: built anew, equal
+    assert again is not first and np.array_equal(again.ranges, first.ranges)
+    # Asking for cached maps makes them the most recent: the next eviction spares them.
+    TrackMaps.build(tracks[-1])
+    TrackMaps.build(tracks[1])
+    assert built[-1] in cache.values()
