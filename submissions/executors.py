@@ -264,10 +264,11 @@ class LocalExecutor:
 
     def prestart(self, wait_s: float = 0.0) -> int:
         """Start job processes now, up to ``workers``, so that the next :meth:`run` does not
-        wait for their start-up (a fresh interpreter importing the simulator: 1.4–2.0 s on
-        2 vCPUs). ``slipstream evaluate`` calls it before it checks the bundle, the
-        leaderboard worker when it starts. They are kept like the idle processes a run
-        leaves: ``keep_warm_s`` (with 0, until the next :meth:`run` or :meth:`close`).
+        wait for their start-up (a fresh interpreter importing the race machinery,
+        :func:`submissions.jobs.preload`: 0.5 s on 2 vCPUs). ``slipstream evaluate`` calls
+        it before it checks the bundle, the leaderboard worker when it starts. They are
+        kept like the idle processes a run leaves: ``keep_warm_s`` (with 0, until the next
+        :meth:`run` or :meth:`close`).
 
         Args:
             wait_s: block until each process said it started, at most this long, s (0: do
