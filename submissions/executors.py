@@ -256,9 +256,7 @@ class LocalExecutor:
         """End the job processes kept between runs, and their sandboxes; idempotent."""
         with self._lock:
             kept, self._warm = self._warm, []
-            if self._timer is not None:
-                self._timer.cancel()
-                self._timer = None
+            self._disarm()
         for worker in kept:
             self._end(worker)
 
@@ -278,11 +276,12 @@ class LocalExecutor:
             The idle processes now kept (alive).
         """
         with self._lock:
-            if self._timer is not None:
-                self._timer.cancel()
-                self._timer = None
-            dead = [w for w in self._warm if not w.process.is_alive()]
-            self._warm = [w for w in self._warm if w.process.is_alive()]
+            self._disarm()
+            alive: list[_Worker] = []
+            dead: list[_Worker] = []
+            for worker in self._warm:  # each asked once: it may die meanwhile
+                (alive if worker.process.is_alive() else dead).append(worker)
+            self._warm = alive
             while len(self._warm) < self.workers:
                 self._warm.append(self._spawn())
             waiting = [w for w in self._warm if not w.ready]
@@ -423,9 +422,7 @@ class LocalExecutor:
         queue: deque[tuple[RaceJob, int]] = deque((job, 1) for job in jobs)
         with self._lock:  # take the warm processes: no timer may end them while we run
             workers, self._warm = self._warm, []
-            if self._timer is not None:
-                self._timer.cancel()
-                self._timer = None
+            self._disarm()
         done, total = 0, len(queue)
         try:
             while queue or any(w.job is not None for w in workers):
@@ -491,6 +488,12 @@ class LocalExecutor:
         with self._lock:
             self._warm = kept
             self._arm()
+
+    def _disarm(self) -> None:
+        """(Under the lock.) Stop the timer that would end the kept processes."""
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
 
     def _arm(self) -> None:
         """(Under the lock.) End the kept processes in ``keep_warm_s`` unless a run takes them."""
