@@ -61,6 +61,7 @@ from typing import Any, get_args, get_origin, get_type_hints
 
 import numpy as np
 
+from agents.curriculum import CURRICULUM_ARMS, CURRICULUM_START
 from agents.policy import Policy, PolicyError
 
 DEFAULT_EVAL_SEED = 12345  # evaluation races use fixed seeds, independent of training
@@ -195,6 +196,10 @@ class TrainArgs:
     (the experiment's best: 0.75 with --cvar-warmup 0; README "A CVaR objective")"""
     cvar_warmup: float = 0.2
     """cvar: the share of the budget first trained on every slot (EPOpt's warm-up)"""
+    curriculum: float = 0.0
+    """a curriculum on the bounds (--backend batch; sample, wide or cvar): the randomisation
+    starts at 30 % of its width about the nominal car and widens linearly to the full
+    set over this share of the budget (0: off; agents.curriculum)"""
     nature_every: int = 20_000
     """adversarial: train the nature for nature_steps after every this many racer steps"""
     nature_steps: int = 10_000
@@ -327,6 +332,13 @@ def _check(args: TrainArgs) -> None:
         raise PolicyError(f"cvar_share must be within (0, 1], not {args.cvar_share}")
     if not 0.0 <= args.cvar_warmup < 1.0:
         raise PolicyError(f"cvar_warmup must be within [0, 1), not {args.cvar_warmup}")
+    if not 0.0 <= args.curriculum <= 1.0:
+        raise PolicyError(f"curriculum is a share of the budget in [0, 1], got {args.curriculum}")
+    if args.curriculum and (args.backend != "batch" or args.uncertainty not in CURRICULUM_ARMS):
+        raise PolicyError(
+            "curriculum widens domain randomisation on --backend batch: it needs "
+            f"--uncertainty {', '.join(CURRICULUM_ARMS)}, not {args.backend}/{args.uncertainty}"
+        )
     if args.init_from is not None and not Path(args.init_from).is_file():
         raise PolicyError(f"init_from: no such checkpoint {args.init_from}")
     parse_mix(args.opponent_mix)  # checked even when no car is an opponent: a typo is a typo
@@ -838,8 +850,12 @@ def main(args: TrainArgs) -> dict[str, Any]:
     mix = parse_mix(args.opponent_mix) if args.n_learners < args.n_cars else {}
     pool = OpponentPool(mix=mix, max_snapshots=args.max_snapshots)
     vec_env: Any
+    full: Any = train_env_kwargs.get("uncertainty")  # the training set (None: nominal)
     if args.backend == "batch":
-        vec_env = _batch_vec_env(args, train_env_kwargs.get("uncertainty"))
+        if args.curriculum:  # the first episodes already draw from the narrowest bounds
+            vec_env = _batch_vec_env(args, full.scaled(CURRICULUM_START))
+        else:
+            vec_env = _batch_vec_env(args, full)
     else:
         vec_env = SelfPlayVecEnv(
             training_tracks(args),
@@ -924,6 +940,7 @@ def main(args: TrainArgs) -> dict[str, Any]:
             if args.uncertainty == "cvar"
             else {}
         ),
+        **({"curriculum": args.curriculum} if args.curriculum else {}),
         "backend": args.backend,
         "car": env_kwargs["car"],
         "track_scale": track_scale(args.car),
@@ -961,6 +978,13 @@ def main(args: TrainArgs) -> dict[str, Any]:
 
         redraw = procedural_callback(args, vec_env)
         callback = CallbackList([monitor, redraw])
+    if args.curriculum:
+        from stable_baselines3.common.callbacks import CallbackList  # noqa: PLC0415 - heavy
+
+        from agents.curriculum import curriculum_callback  # noqa: PLC0415 - only this option
+
+        widen = curriculum_callback(full, vec_env, args.total_timesteps, args.curriculum)
+        callback = CallbackList([callback, widen])
     if args.uncertainty in ("adversarial", "robust_mg"):  # a nature to train
         from agents.robustness import rarl_callback  # noqa: PLC0415 - heavy, imported on use
 

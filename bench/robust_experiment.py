@@ -5,7 +5,9 @@ domain randomisation over :func:`arena.uncertainty.default_config` —, ``wide``
 over wider intervals —, ``cvar`` — wide, each PPO update on the worst ``--cvar-share`` of
 its rollout after ``--cvar-warmup`` of the budget (:mod:`agents.cvar`; in the results
 ``cvar@S[,wW]`` when not 0.5 and 0.2) —, ``adversarial`` — RARL, batched natures —,
-``robust_mg`` — Zhang et al.'s nature over dynamics and reward) and every seed, ``slipstream
+``robust_mg`` — Zhang et al.'s nature over dynamics and reward; ``--curriculum R`` widens
+the bounds of the domain-randomisation arms over the first R of the budget,
+:mod:`agents.curriculum`, labelled ``+curR``) and every seed, ``slipstream
 train --backend batch`` from scratch with the same budget (``--steps`` agent-steps), the
 same tracks and ``--procedural`` share; then every policy is scored on tracks none trained
 on (``--eval-tracks``: held-out built-ins and fresh generated tracks) by ``slipstream
@@ -45,6 +47,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from agents.curriculum import CURRICULUM_ARMS
 
 ARMS = ("nominal", "sample", "wide", "cvar", "adversarial", "robust_mg")
 TRAIN_TRACKS = ("oval", "hairpins", "chicanes", "bean", "technical", "speedway")
@@ -120,6 +124,7 @@ def train_run(args: argparse.Namespace, arm: str, seed: int) -> Path:
             progress_bar=sys.stderr.isatty(),
             cvar_share=args.cvar_share,
             cvar_warmup=args.cvar_warmup,
+            curriculum=args.curriculum if arm in CURRICULUM_ARMS else 0.0,
             nature_every=max(1, args.steps // 10),
             nature_steps=max(1, args.steps // 20),
         )
@@ -129,11 +134,15 @@ def train_run(args: argparse.Namespace, arm: str, seed: int) -> Path:
 
 def arm_label(args: argparse.Namespace, arm: str) -> str:
     """An arm's name in the results: ``cvar`` with a share other than 0.5 is ``cvar@S``, and
-    with a warm-up other than 0.2 ``cvar@S,wW``."""
-    if arm != "cvar" or (args.cvar_share == 0.5 and args.cvar_warmup == 0.2):
-        return arm
-    warmup = "" if args.cvar_warmup == 0.2 else f",w{args.cvar_warmup:g}"
-    return f"cvar@{args.cvar_share:g}{warmup}"
+    with a warm-up other than 0.2 ``cvar@S,wW``; a domain-randomisation arm trained with a
+    curriculum on its bounds gets ``+curR``."""
+    label = arm
+    if arm == "cvar" and (args.cvar_share != 0.5 or args.cvar_warmup != 0.2):
+        warmup = "" if args.cvar_warmup == 0.2 else f",w{args.cvar_warmup:g}"
+        label = f"cvar@{args.cvar_share:g}{warmup}"
+    if args.curriculum and arm in CURRICULUM_ARMS:
+        label += f"+cur{args.curriculum:g}"
+    return label
 
 
 def score_key(args: argparse.Namespace) -> dict[str, Any]:
@@ -298,6 +307,13 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     )
     p.add_argument(
         "--cvar-warmup", type=float, default=0.2, help="the cvar arm's warm-up share of the budget"
+    )
+    p.add_argument(
+        "--curriculum",
+        type=float,
+        default=0.0,
+        help="sample, wide and cvar arms: widen the bounds over this share of the budget "
+        "(agents.curriculum; 0: off)",
     )
     p.add_argument("--n-envs", type=int, default=8, help="races per track group")
     p.add_argument("--n-cars", type=int, default=4)

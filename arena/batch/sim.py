@@ -471,6 +471,27 @@ class BatchSim:
         self._lidar_noise = col("lidar_noise", self._lidar_noise)
         self._dropout = col("lidar_dropout", self._dropout)
 
+    def set_uncertainty(self, cfg: UncertaintyConfig) -> None:
+        """Draw from ``cfg``'s bounds from now on (a curriculum on the bounds widens them as
+        training goes). Values already drawn stay until their next draw (each episode's
+        start, or the ``resample`` step); the mode and the free parameters (the width of
+        :meth:`global_state` and of nature's action) cannot change.
+
+        Raises:
+            UncertaintyError: this simulator was built without uncertainty, or ``cfg`` has
+                another mode or other free parameters.
+        """
+        old = self.uncertainty
+        if old is None:
+            raise UncertaintyError("set_uncertainty needs a simulator built with uncertainty=")
+        if not isinstance(cfg, UncertaintyConfig) or cfg.mode != old.mode:
+            raise UncertaintyError(f"set_uncertainty keeps the mode {old.mode!r}")
+        if cfg.free_names != old.free_names:
+            raise UncertaintyError(
+                f"set_uncertainty keeps the free parameters {old.free_names}, not {cfg.free_names}"
+            )
+        self.uncertainty = self.unc.cfg = cfg
+
     def _advance_uncertainty(self, nature: Any) -> None:
         """Before a step: the sampler's or the natures' new values (one implementation:
         :meth:`arena.uncertainty.PerturbationState.advance`)."""
