@@ -692,62 +692,94 @@ def rarl_callback(
     cars driven by a frozen copy of the racer) trains for ``args.nature_steps``; then the
     racers' natures are driven by a frozen copy of it. The nature is saved next to the run
     as ``nature_sb3.zip`` (stable-baselines3's format: your own file, trusted).
+
+    With ``args.natures`` K > 1 (``--backend batch``), a *population* of natures (Vinitsky
+    et al., "Robust Reinforcement Learning using Adversarial Populations", 2020): K nature
+    PPOs, each with its own race copies and seed; each phase trains one of them in turn
+    (the same nature steps in all, so each gets about 1/K of them), then every race group of
+    the racers' env gets one of the natures trained so far, drawn anew each phase (seeded),
+    so the racers meet several adversaries at once rather than the latest one's habits.
+    Saved as ``nature_sb3.zip`` (the first) and ``nature_sb3_<k>.zip``.
     """
     from stable_baselines3.common.callbacks import BaseCallback, CallbackList  # noqa: PLC0415
 
     from agents.selfplay import SB3Driver, SelfPlayVecEnv  # noqa: PLC0415 - heavy
 
-    nature_env: Any
-    if args.backend == "batch":
-        from agents.batch_rarl import BatchNatureVecEnv  # noqa: PLC0415 - heavy
-        from agents.train import _batch_vec_env  # noqa: PLC0415 - heavy
+    k_natures = int(getattr(args, "natures", 1))
+    nature_envs: list[Any] = []
+    for k in range(k_natures):
+        if args.backend == "batch":
+            from agents.batch_rarl import BatchNatureVecEnv  # noqa: PLC0415 - heavy
+            from agents.train import _batch_vec_env  # noqa: PLC0415 - heavy
 
-        # The natures of every car of half as many races, on the fixed training tracks.
-        nature_env = BatchNatureVecEnv(
-            _batch_vec_env(
-                args, env_kwargs["uncertainty"], seed=args.seed + 10_000,
-                n_envs=max(1, args.n_envs // 2), procedural=False,
+            # The natures of every car of half as many races, on the fixed training tracks.
+            nature_envs.append(
+                BatchNatureVecEnv(
+                    _batch_vec_env(
+                        args, env_kwargs["uncertainty"], seed=args.seed + 10_000 + k,
+                        n_envs=max(1, args.n_envs // 2), procedural=False,
+                    )
+                )
+            )  # fmt: skip
+        else:
+            from agents.train import training_tracks  # noqa: PLC0415 - heavy
+
+            nature_envs.append(
+                SelfPlayVecEnv(
+                    training_tracks(args),
+                    n_envs=max(1, args.n_envs // 2),
+                    n_cars=args.n_cars,
+                    n_learners=args.n_learners,
+                    laps=args.train_laps,
+                    randomise=args.randomise,
+                    reward_scale=args.reward_scale,
+                    dnf_penalty=args.dnf_penalty,
+                    seed=args.seed + 10_000 + k,
+                    env_kwargs=env_kwargs,
+                    role="nature",
+                )
             )
-        )  # fmt: skip
-    else:
-        from agents.train import training_tracks  # noqa: PLC0415 - heavy
-
-        nature_env = SelfPlayVecEnv(
-            training_tracks(args),
-            n_envs=max(1, args.n_envs // 2),
-            n_cars=args.n_cars,
-            n_learners=args.n_learners,
-            laps=args.train_laps,
-            randomise=args.randomise,
-            reward_scale=args.reward_scale,
-            dnf_penalty=args.dnf_penalty,
-            seed=args.seed + 10_000,
-            env_kwargs=env_kwargs,
-            role="nature",
-        )
-        nature_env.pool = racer_env.pool  # the same opponents
-    nature = _nature_ppo(nature_env, args.seed, run_dir / "tb_nature")
+            nature_envs[-1].pool = racer_env.pool  # the same opponents
+    tb_dir = run_dir / "tb_nature"
+    natures = [_nature_ppo(env, args.seed + k, tb_dir) for k, env in enumerate(nature_envs)]
+    rng = np.random.default_rng([args.seed, 13])
 
     class Alternate(BaseCallback):
         def __init__(self) -> None:
             super().__init__()
             self.next = args.nature_every
+            self.phases = 0
+            self.trained: list[int] = []  # the natures trained so far, in order
 
         def _on_step(self) -> bool:
             if self.num_timesteps >= self.next:
                 self.next += args.nature_every
-                nature_env.racer = SB3Driver.frozen(self.model.policy, "racer")
-                nature.learn(args.nature_steps, reset_num_timesteps=False, tb_log_name="nature")
-                driver = SB3Driver.frozen(nature.policy, "nature")
-                if args.backend == "batch":  # every simulator's natures, one batch each
-                    racer_env.set_attr("nature", driver)
-                else:
-                    racer_env.nature = driver
+                k = self.phases % k_natures
+                self.phases += 1
+                nature_envs[k].racer = SB3Driver.frozen(self.model.policy, "racer")
+                natures[k].learn(args.nature_steps, reset_num_timesteps=False, tb_log_name="nature")
+                if k not in self.trained:
+                    self.trained.append(k)
+                drivers = [
+                    SB3Driver.frozen(
+                        natures[j].policy, "nature" if k_natures == 1 else f"nature_{j}"
+                    )
+                    for j in self.trained
+                ]
+                if args.backend != "batch":
+                    racer_env.nature = drivers[-1]
+                elif k_natures == 1:  # every simulator's natures, one batch each
+                    racer_env.set_attr("nature", drivers[-1])
+                else:  # each race group meets one of the population, drawn anew
+                    for sim in racer_env.sims:
+                        sim.nature = drivers[int(rng.integers(len(drivers)))]
             return True
 
         def _on_training_end(self) -> None:
-            nature.save(run_dir / "nature_sb3.zip")
-            nature_env.close()
+            for k, nature in enumerate(natures):
+                nature.save(run_dir / ("nature_sb3.zip" if k == 0 else f"nature_sb3_{k}.zip"))
+            for env in nature_envs:
+                env.close()
 
     return CallbackList([monitor, Alternate()])
 

@@ -204,6 +204,10 @@ class TrainArgs:
     """adversarial: train the nature for nature_steps after every this many racer steps"""
     nature_steps: int = 10_000
     """adversarial: nature steps per alternation phase"""
+    natures: int = 1
+    """adversarial and robust_mg on --backend batch: a population of this many natures, one
+    trained per phase in turn, each race group facing one of them, drawn anew each phase
+    (agents.robustness.rarl_callback)"""
     init_from: Path | None = None
     """start from the policy weights of this Slipstream checkpoint (fine-tuning; the value
     network starts fresh)"""
@@ -338,6 +342,15 @@ def _check(args: TrainArgs) -> None:
         raise PolicyError(
             "curriculum widens domain randomisation on --backend batch: it needs "
             f"--uncertainty {', '.join(CURRICULUM_ARMS)}, not {args.backend}/{args.uncertainty}"
+        )
+    if args.natures < 1:
+        raise PolicyError(f"natures must be at least 1, got {args.natures}")
+    if args.natures > 1 and (
+        args.backend != "batch" or args.uncertainty not in ("adversarial", "robust_mg")
+    ):
+        raise PolicyError(
+            "a population of natures (--natures > 1) needs --backend batch and --uncertainty "
+            f"adversarial or robust_mg, not {args.backend}/{args.uncertainty}"
         )
     if args.init_from is not None and not Path(args.init_from).is_file():
         raise PolicyError(f"init_from: no such checkpoint {args.init_from}")
@@ -941,6 +954,7 @@ def main(args: TrainArgs) -> dict[str, Any]:
             else {}
         ),
         **({"curriculum": args.curriculum} if args.curriculum else {}),
+        **({"natures": args.natures} if args.natures > 1 else {}),
         "backend": args.backend,
         "car": env_kwargs["car"],
         "track_scale": track_scale(args.car),

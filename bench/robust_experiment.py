@@ -7,7 +7,8 @@ its rollout after ``--cvar-warmup`` of the budget (:mod:`agents.cvar`; in the re
 ``cvar@S[,wW]`` when not 0.5 and 0.2) —, ``adversarial`` — RARL, batched natures —,
 ``robust_mg`` — Zhang et al.'s nature over dynamics and reward; ``--curriculum R`` widens
 the bounds of the domain-randomisation arms over the first R of the budget,
-:mod:`agents.curriculum`, labelled ``+curR``) and every seed, ``slipstream
+:mod:`agents.curriculum`, labelled ``+curR``; ``--natures K`` gives the nature arms a
+population of K natures, labelled ``+popK``) and every seed, ``slipstream
 train --backend batch`` from scratch with the same budget (``--steps`` agent-steps), the
 same tracks and ``--procedural`` share; then every policy is scored on tracks none trained
 on (``--eval-tracks``: held-out built-ins and fresh generated tracks) by ``slipstream
@@ -51,6 +52,7 @@ import numpy as np
 from agents.curriculum import CURRICULUM_ARMS
 
 ARMS = ("nominal", "sample", "wide", "cvar", "adversarial", "robust_mg")
+NATURE_ARMS = ("adversarial", "robust_mg")  # the arms with natures (--natures K)
 TRAIN_TRACKS = ("oval", "hairpins", "chicanes", "bean", "technical", "speedway")
 EVAL_TRACKS = (
     "monza",
@@ -125,6 +127,7 @@ def train_run(args: argparse.Namespace, arm: str, seed: int) -> Path:
             cvar_share=args.cvar_share,
             cvar_warmup=args.cvar_warmup,
             curriculum=args.curriculum if arm in CURRICULUM_ARMS else 0.0,
+            natures=args.natures if arm in NATURE_ARMS else 1,
             nature_every=max(1, args.steps // 10),
             nature_steps=max(1, args.steps // 20),
         )
@@ -142,6 +145,8 @@ def arm_label(args: argparse.Namespace, arm: str) -> str:
         label = f"cvar@{args.cvar_share:g}{warmup}"
     if args.curriculum and arm in CURRICULUM_ARMS:
         label += f"+cur{args.curriculum:g}"
+    if args.natures > 1 and arm in NATURE_ARMS:
+        label += f"+pop{args.natures}"
     return label
 
 
@@ -314,6 +319,13 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         default=0.0,
         help="sample, wide and cvar arms: widen the bounds over this share of the budget "
         "(agents.curriculum; 0: off)",
+    )
+    p.add_argument(
+        "--natures",
+        type=int,
+        default=1,
+        help="adversarial and robust_mg arms: a population of this many natures "
+        "(agents.robustness.rarl_callback)",
     )
     p.add_argument("--n-envs", type=int, default=8, help="races per track group")
     p.add_argument("--n-cars", type=int, default=4)

@@ -145,3 +145,47 @@ def test_adversarial_batch_training_alternates_racer_and_batched_natures(tmp_pat
     assert summary["training"]["steps"] >= 2048
     assert (run_dir / "nature_sb3.zip").is_file()  # the nature that was trained alongside
     assert any((run_dir / "tb_nature").rglob("events.out.tfevents.*"))
+
+
+@pytest.mark.slow
+def test_a_population_of_natures_trains_each_in_turn_and_spreads_them_over_the_groups(
+    tmp_path: Path,
+) -> None:
+    # Vinitsky et al.'s adversarial population on the batched backend: two natures, one
+    # trained per phase in turn; each race group of the racers' env meets one of those
+    # trained so far, drawn anew each phase.
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    from agents.robustness import rarl_callback, training_uncertainty
+    from agents.train import _batch_vec_env
+
+    args = TrainArgs(
+        backend="batch", tracks=["oval", "bean", "chicanes"], n_cars=2, n_envs=2,
+        uncertainty="adversarial", natures=2, nature_every=192, nature_steps=128, seed=0,
+        randomise=False, out=tmp_path,
+    )  # fmt: skip
+    cfg = training_uncertainty("adversarial")
+    env = _batch_vec_env(args, cfg)
+    seen: list[list[str | None]] = []
+
+    class Watch(BaseCallback):
+        def _on_step(self) -> bool:
+            return True
+
+        def _on_rollout_start(self) -> None:
+            seen.append([getattr(sim.nature, "name", None) for sim in env.sims])
+
+    racers = PPO("MlpPolicy", env, n_steps=16, batch_size=64, n_epochs=1, seed=0, device="cpu")
+    racers.learn(1152, callback=rarl_callback(args, env, {"uncertainty": cfg}, tmp_path, Watch()))
+    env.close()
+    assert seen[0] == [None] * len(env.sims)  # no nature trained yet: nominal cars
+    # A phase after each rollout of 3 groups x 2 races x 2 cars x 16 steps = 192 steps.
+    assert seen[1] == ["nature_0"] * len(env.sims)  # the first phase trained the first nature
+    later = {name for names in seen[2:] for name in names}
+    assert later == {"nature_0", "nature_1"}  # both met, the groups spread over them
+    assert any(len(set(names)) == 2 for names in seen[2:])  # in one rollout, too
+    for name in ("nature_sb3.zip", "nature_sb3_1.zip"):  # each trained, each saved
+        assert PPO.load(tmp_path / name, device="cpu").num_timesteps >= 128
+    with pytest.raises(PolicyError, match="population"):
+        main(TrainArgs(backend="batch", uncertainty="sample", natures=2, out=tmp_path))
