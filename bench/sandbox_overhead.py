@@ -15,7 +15,11 @@ run, against the same in-process figures.
    time, CPU time from ``/proc/<pid>/schedstat``: this process's plus the sandbox's
    processes' (the "CPU ratio" compares the work done, whatever the load), and the time
    they spent runnable but waiting for a CPU — on a loaded machine, every hand-over between
-   two processes risks such a wait, which an in-process call never pays.
+   two processes risks such a wait, which an in-process call never pays. The defaults,
+   10,000 observations in 50 blocks (~15 s in all), are what it takes for a steady figure
+   on a shared VM: five runs of 1,000 in 10 blocks on a quiet hour gave 1.05–2.76× (a block
+   of 100 steps, 5–8 ms, is at the mercy of one descheduled vCPU), three of 10,000 in 50
+   gave 1.50–1.53×.
 2. **Races per minute.** One-lap races with four pursuit cars: in-process, and for each mode
    four sandboxed cars three ways: ``fresh`` (each race starts four sandboxes, loads the
    policies, races, kills them), ``pooled`` (the ``--races`` races are one batch:
@@ -46,7 +50,7 @@ it (scheduled) or left to the kernel (unscheduled).
 
 Usage::
 
-    python bench/sandbox_overhead.py [--track oval] [--steps 1000] [--blocks 10] [--races 3]
+    python bench/sandbox_overhead.py [--track oval] [--steps 10000] [--blocks 50] [--races 3]
                                      [--starts 3] [--modes bwrap seccomp] [--json] [--out FILE]
 """
 
@@ -597,7 +601,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--track", default="oval", help="built-in track name or path")
     parser.add_argument(
-        "--steps", type=int, default=1000, help="observations timed per step figure"
+        "--steps", type=int, default=10_000, help="observations timed per step figure"
     )
     parser.add_argument(
         "--races", type=int, default=3, help="races per races-per-minute figure (0: none)"
@@ -605,7 +609,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--starts", type=int, default=3, help="sandbox starts per start-up figure (0: none)"
     )
-    parser.add_argument("--blocks", type=int, default=10, help="interleaved blocks per step figure")
+    parser.add_argument("--blocks", type=int, default=50, help="interleaved blocks per step figure")
     parser.add_argument(
         "--modes", nargs="+", default=["bwrap", "seccomp"], choices=["bwrap", "seccomp"]
     )

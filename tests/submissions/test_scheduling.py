@@ -24,6 +24,7 @@ from submissions.scheduling import (
     LATENCY_ENV,
     MAX_LATENCY_US,
     MAX_SPIN_US,
+    RECENT,
     SAMPLE_S,
     SPIN_ENV,
     SPIN_US,
@@ -388,13 +389,24 @@ def test_the_host_spins_while_the_cpus_are_free_and_backs_off_when_they_are_not(
     pressure.stall(CONTENDED_SHARE * 4, SAMPLE_S / 3)
     assert gate.spin_allowed()  # within a sample: not read again
     pressure.stall(CONTENDED_SHARE * 4, sample)
-    assert not gate.spin_allowed()  # contended: no spin, for the backoff
+    assert gate.spin_allowed()  # one contended sample among free ones: a burst, not load
+    pressure.stall(CONTENDED_SHARE / 2, sample)
+    assert gate.spin_allowed()
+    pressure.stall(CONTENDED_SHARE * 4, sample)
+    assert not gate.spin_allowed()  # a second within the last three: no spin, for the backoff
     pressure.stall(0.0, BACKOFF_S / 2)
     assert not gate.spin_allowed()  # still backing off, however free the CPUs now are
     pressure.stall(0.0, BACKOFF_S)
     assert gate.spin_allowed()  # tries again, from a fresh sample
     pressure.stall(CONTENDED_SHARE * 1.5, sample)
-    assert not gate.spin_allowed()
+    assert not gate.spin_allowed()  # still contended: at once (the history outlives a backoff)
+    pressure.stall(0.0, BACKOFF_S * 1.01)
+    assert gate.spin_allowed()
+    for _ in range(RECENT):  # free samples push the contended ones out
+        pressure.stall(CONTENDED_SHARE / 2, sample)
+        assert gate.spin_allowed()
+    pressure.stall(CONTENDED_SHARE * 1.5, sample)
+    assert gate.spin_allowed()  # a burst again
 
 
 def test_a_pause_longer_than_a_few_samples_starts_afresh(tmp_path: Path) -> None:
@@ -402,7 +414,11 @@ def test_a_pause_longer_than_a_few_samples_starts_afresh(tmp_path: Path) -> None
     pressure = Pressure(tmp_path / "cpu")
     gate = CpuContention(pressure.path, clock=lambda: pressure.now)
     assert gate.spin_allowed()
+    pressure.stall(0.9, SAMPLE_S * 1.01)
+    assert gate.spin_allowed()  # one contended sample before the pause …
     pressure.stall(0.9, 30.0)
+    assert gate.spin_allowed()  # … is forgotten with the stalls of the pause
+    pressure.stall(0.9, SAMPLE_S * 1.01)
     assert gate.spin_allowed()
     pressure.stall(0.9, SAMPLE_S * 1.01)
     assert not gate.spin_allowed()
