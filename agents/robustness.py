@@ -683,6 +683,38 @@ def load_weights(model: Any, path: Path) -> None:
     model.policy.load_state_dict({k: torch.as_tensor(v) for k, v in tensors.items()}, strict=False)
 
 
+def _nature_env(args: Any, racer_env: Any, env_kwargs: dict[str, Any], k: int) -> Any:
+    """The races nature ``k`` of ``slipstream train`` learns in: the natures of every car of
+    half as many races as the racers', on the fixed training tracks, seeded apart."""
+    from agents.selfplay import SelfPlayVecEnv  # noqa: PLC0415 - heavy
+    from agents.train import _batch_vec_env, training_tracks  # noqa: PLC0415 - heavy
+
+    n_envs, seed = max(1, args.n_envs // 2), args.seed + 10_000 + k
+    if args.backend == "batch":
+        from agents.batch_rarl import BatchNatureVecEnv  # noqa: PLC0415 - heavy
+
+        return BatchNatureVecEnv(
+            _batch_vec_env(
+                args, env_kwargs["uncertainty"], seed=seed, n_envs=n_envs, procedural=False
+            )
+        )
+    env = SelfPlayVecEnv(
+        training_tracks(args),
+        n_envs=n_envs,
+        n_cars=args.n_cars,
+        n_learners=args.n_learners,
+        laps=args.train_laps,
+        randomise=args.randomise,
+        reward_scale=args.reward_scale,
+        dnf_penalty=args.dnf_penalty,
+        seed=seed,
+        env_kwargs=env_kwargs,
+        role="nature",
+    )
+    env.pool = racer_env.pool  # the same opponents
+    return env
+
+
 def rarl_callback(
     args: Any, racer_env: Any, env_kwargs: dict[str, Any], run_dir: Path, monitor: Any
 ) -> Any:
@@ -703,43 +735,10 @@ def rarl_callback(
     """
     from stable_baselines3.common.callbacks import BaseCallback, CallbackList  # noqa: PLC0415
 
-    from agents.selfplay import SB3Driver, SelfPlayVecEnv  # noqa: PLC0415 - heavy
+    from agents.selfplay import SB3Driver  # noqa: PLC0415 - heavy
 
     k_natures = int(getattr(args, "natures", 1))
-    nature_envs: list[Any] = []
-    for k in range(k_natures):
-        if args.backend == "batch":
-            from agents.batch_rarl import BatchNatureVecEnv  # noqa: PLC0415 - heavy
-            from agents.train import _batch_vec_env  # noqa: PLC0415 - heavy
-
-            # The natures of every car of half as many races, on the fixed training tracks.
-            nature_envs.append(
-                BatchNatureVecEnv(
-                    _batch_vec_env(
-                        args, env_kwargs["uncertainty"], seed=args.seed + 10_000 + k,
-                        n_envs=max(1, args.n_envs // 2), procedural=False,
-                    )
-                )
-            )  # fmt: skip
-        else:
-            from agents.train import training_tracks  # noqa: PLC0415 - heavy
-
-            nature_envs.append(
-                SelfPlayVecEnv(
-                    training_tracks(args),
-                    n_envs=max(1, args.n_envs // 2),
-                    n_cars=args.n_cars,
-                    n_learners=args.n_learners,
-                    laps=args.train_laps,
-                    randomise=args.randomise,
-                    reward_scale=args.reward_scale,
-                    dnf_penalty=args.dnf_penalty,
-                    seed=args.seed + 10_000 + k,
-                    env_kwargs=env_kwargs,
-                    role="nature",
-                )
-            )
-            nature_envs[-1].pool = racer_env.pool  # the same opponents
+    nature_envs = [_nature_env(args, racer_env, env_kwargs, k) for k in range(k_natures)]
     tb_dir = run_dir / "tb_nature"
     natures = [_nature_ppo(env, args.seed + k, tb_dir) for k, env in enumerate(nature_envs)]
     rng = np.random.default_rng([args.seed, 13])
