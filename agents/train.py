@@ -260,7 +260,8 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
             kwargs.update(nargs="+", type=item, metavar=_METAVARS.get(item, "X"))
         else:
             kwargs.update(type=base, metavar=_METAVARS.get(base, "X"))
-        kwargs["help"] = f"{docs.get(f.name, '')} (default: {_show(default)})"
+        help_text = f"{docs.get(f.name, '')} (default: {_show(default)})"
+        kwargs["help"] = help_text.replace("%", "%%")  # argparse %-formats help texts
         parser.add_argument(flag, **kwargs)
 
 

@@ -127,6 +127,7 @@ def test_arguments_have_types_and_help() -> None:
     text = parser.format_help()
     assert "training tracks, one drawn per episode" in text
     assert "--stop-at-first-clean-lap" in text and "--no-randomise" in text
+    assert "starts at 30 % of its width" in " ".join(text.split())  # "%" is text, not a format
     args = parse_args(
         [
             "--tracks",
