@@ -33,7 +33,7 @@ SHIPPED = {
     "ppo_racer": (SHIPPED_DIR / "ppo_racer.zip", "the shipped PPO checkpoint (nominal)"),
     "ppo_robust": (
         SHIPPED_DIR / "ppo_robust.zip",
-        "the shipped robust PPO checkpoint (trained under domain randomisation)",
+        "the shipped robust PPO checkpoint (a CVaR objective under domain randomisation)",
     ),
 }
 CHECKPOINT = SHIPPED["ppo_racer"][0]
