@@ -198,8 +198,10 @@ class CpuContention:
         if last is not None and now - last > 10 * SAMPLE_S:
             self._recent.clear()  # a pause (between races, say): what came before is stale
             return True
-        if last is None:
-            return True  # a fresh sample (the first, or after a backoff): nothing to compare
+        if last is None:  # a fresh sample (the first, or after a backoff): nothing to compare
+            if now - self._quiet_until > 10 * SAMPLE_S:
+                self._recent.clear()  # the backoff ended long ago: that was a pause too
+            return True
         contended = waited > CONTENDED_SHARE * (now - last) * 1e6
         self._recent.append(contended)
         if contended and sum(self._recent) >= CONTENDED_OF:

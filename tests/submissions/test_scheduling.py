@@ -422,6 +422,11 @@ def test_a_pause_longer_than_a_few_samples_starts_afresh(tmp_path: Path) -> None
     assert gate.spin_allowed()
     pressure.stall(0.9, SAMPLE_S * 1.01)
     assert not gate.spin_allowed()
+    # Nobody asks for a long while after that backoff: its history is stale by then too.
+    pressure.stall(0.0, 30.0)
+    assert gate.spin_allowed()
+    pressure.stall(0.9, SAMPLE_S * 1.01)
+    assert gate.spin_allowed()  # one burst: not two of three
 
 
 @pytest.mark.parametrize("content", [None, "", "some avg10=1.00\n", "garbage total=x\n"])
