@@ -585,6 +585,8 @@ def _ProgressCallback(progress: ProgressFn, total: int) -> Any:
 
 TRAINING_UNCERTAINTY = ("nominal", "sample", "wide", "cvar", "adversarial", "robust_mg")
 """What ``slipstream train --uncertainty`` takes (see :func:`training_uncertainty`)."""
+NATURE_ARMS = ("adversarial", "robust_mg")
+"""The arms of :data:`TRAINING_UNCERTAINTY` that train natures (:func:`rarl_callback`)."""
 
 
 WIDE_FACTOR = 1.5  # how much wider than the scored set the ``wide`` arm's intervals are
@@ -748,7 +750,7 @@ def rarl_callback(
             super().__init__()
             self.next = args.nature_every
             self.phases = 0
-            self.trained: list[int] = []  # the natures trained so far, in order
+            self.drivers: dict[int, Any] = {}  # frozen copies of the natures trained so far
 
         def _on_step(self) -> bool:
             if self.num_timesteps >= self.next:
@@ -757,14 +759,9 @@ def rarl_callback(
                 self.phases += 1
                 nature_envs[k].racer = SB3Driver.frozen(self.model.policy, "racer")
                 natures[k].learn(args.nature_steps, reset_num_timesteps=False, tb_log_name="nature")
-                if k not in self.trained:
-                    self.trained.append(k)
-                drivers = [
-                    SB3Driver.frozen(
-                        natures[j].policy, "nature" if k_natures == 1 else f"nature_{j}"
-                    )
-                    for j in self.trained
-                ]
+                name = "nature" if k_natures == 1 else f"nature_{k}"
+                self.drivers[k] = SB3Driver.frozen(natures[k].policy, name)  # only k changed
+                drivers = list(self.drivers.values())  # in the order first trained
                 if args.backend != "batch":
                     racer_env.nature = drivers[-1]
                 elif k_natures == 1:  # every simulator's natures, one batch each

@@ -63,6 +63,7 @@ import numpy as np
 
 from agents.curriculum import CURRICULUM_ARMS, CURRICULUM_START
 from agents.policy import Policy, PolicyError
+from agents.robustness import NATURE_ARMS
 
 DEFAULT_EVAL_SEED = 12345  # evaluation races use fixed seeds, independent of training
 
@@ -346,9 +347,7 @@ def _check(args: TrainArgs) -> None:
         )
     if args.natures < 1:
         raise PolicyError(f"natures must be at least 1, got {args.natures}")
-    if args.natures > 1 and (
-        args.backend != "batch" or args.uncertainty not in ("adversarial", "robust_mg")
-    ):
+    if args.natures > 1 and (args.backend != "batch" or args.uncertainty not in NATURE_ARMS):
         raise PolicyError(
             "a population of natures (--natures > 1) needs --backend batch and --uncertainty "
             f"adversarial or robust_mg, not {args.backend}/{args.uncertainty}"
@@ -866,10 +865,8 @@ def main(args: TrainArgs) -> dict[str, Any]:
     vec_env: Any
     full: Any = train_env_kwargs.get("uncertainty")  # the training set (None: nominal)
     if args.backend == "batch":
-        if args.curriculum:  # the first episodes already draw from the narrowest bounds
-            vec_env = _batch_vec_env(args, full.scaled(CURRICULUM_START))
-        else:
-            vec_env = _batch_vec_env(args, full)
+        # With a curriculum the first episodes already draw from the narrowest bounds.
+        vec_env = _batch_vec_env(args, full.scaled(CURRICULUM_START) if args.curriculum else full)
     else:
         vec_env = SelfPlayVecEnv(
             training_tracks(args),
@@ -1000,7 +997,7 @@ def main(args: TrainArgs) -> dict[str, Any]:
 
         widen = curriculum_callback(full, vec_env, args.total_timesteps, args.curriculum)
         callback = CallbackList([callback, widen])
-    if args.uncertainty in ("adversarial", "robust_mg"):  # a nature to train
+    if args.uncertainty in NATURE_ARMS:  # a nature to train
         from agents.robustness import rarl_callback  # noqa: PLC0415 - heavy, imported on use
 
         callback = rarl_callback(args, vec_env, train_env_kwargs, run_dir, callback)

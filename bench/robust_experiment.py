@@ -50,9 +50,9 @@ from typing import Any
 import numpy as np
 
 from agents.curriculum import CURRICULUM_ARMS
+from agents.robustness import NATURE_ARMS
 
 ARMS = ("nominal", "sample", "wide", "cvar", "adversarial", "robust_mg")
-NATURE_ARMS = ("adversarial", "robust_mg")  # the arms with natures (--natures K)
 TRAIN_TRACKS = ("oval", "hairpins", "chicanes", "bean", "technical", "speedway")
 EVAL_TRACKS = (
     "monza",
