@@ -23,7 +23,7 @@ def register(sub: Any) -> None:
             "Race POLICY alone on a track, nominally and over a grid of perturbations "
             "(friction × motor gain × steering offset × latency), on random draws of the "
             "default uncertainty set and against a freshly trained nature; prints the "
-            "nominal score, the random mean, the worst case, the worst-10%% mean and "
+            "nominal score, the random mean, the worst case, the worst-10 % mean and "
             "worst/nominal (scores: effective speed, m/s), and saves a JSON report and a "
             "degradation plot (PNG)."
         ),

@@ -20,7 +20,10 @@ Our JSON (``schema_version`` 1)::
 
 If ``direction`` disagrees with the orientation of the stored points, the points are read in
 reverse (and left/right swapped), so a file can store a circuit either way round. F1TENTH CSV
-files carry ``x_m, y_m, w_tr_right_m, w_tr_left_m`` per row in driving order. DeepRacer
+files carry ``x_m, y_m, w_tr_right_m, w_tr_left_m`` per row in driving order; files whose
+header names their columns are read by name, so the ForzaETH race stack's waypoint CSVs
+(``id; s_m; d_m; x_m; y_m; d_right; d_left; psi_rad; kappa_radpm; vx_mps; ax_mps2``, as
+MapZoo publishes its ``*_centerline.csv`` and ``*_racing_line.csv``) are read too. DeepRacer
 ``.npy`` files are (N, 6) arrays ``[centre_x, centre_y, inner_x, inner_y, outer_x, outer_y]``;
 which border column is left is read from the geometry, and the half-widths are measured to the
 file's border polylines. F1TENTH race lines (``s_m; x_m; y_m; psi_rad; kappa_radpm; vx_mps;
@@ -31,7 +34,6 @@ refusing them; ``track.import_notes`` says what they changed.
 
 from __future__ import annotations
 
-import csv
 import io
 import json
 import zipfile
@@ -275,30 +277,83 @@ def _build_imported(
     return fitted
 
 
+# The columns of an F1TENTH centre line in file order, and the names each one goes by in a
+# header (f1tenth_racetracks; the ForzaETH race stack / MapZoo waypoint files).
+CENTRELINE_COLUMNS = ("x_m", "y_m", "w_tr_right_m", "w_tr_left_m")
+CENTRELINE_NAMES = (("x_m",), ("y_m",), ("w_tr_right_m", "d_right"), ("w_tr_left_m", "d_left"))
+
+
+def _is_number(cell: str) -> bool:
+    try:
+        float(cell)
+    except ValueError:
+        return False
+    return True
+
+
+def _cells(line: str) -> list[str]:
+    """The cells of one line, split on ';' when it has one, else on ','."""
+    return [c.strip() for c in line.split(";" if ";" in line else ",")]
+
+
+def read_columns(
+    path: Path, layout: tuple[str, ...], names: tuple[tuple[str, ...], ...], what: str
+) -> FloatArray:
+    """The wanted columns (K, len(names)) of a ';'- or ','-separated text file, as floats.
+
+    ``layout`` is the columns a file without a usable header has, in order; ``names`` lists,
+    for every column wanted, the header names it goes by (the first is in ``layout``). The
+    header is the last ``#`` line before the data (``# s_m; x_m; ...``) or a first line of
+    names without ``#`` (``id; s_m; d_m; x_m; ...``); when it names every wanted column, they
+    are picked by name from rows of its width, else every row must match ``layout``.
+    Raises TrackError naming the row that does not fit, or the cell that is not a number.
+    """
+    text = _read_bytes(path).decode("utf-8", errors="replace")
+    header: list[str] = []
+    data: list[str] = []
+    for raw in text.splitlines():
+        line = raw.strip()
+        if line.startswith("#"):
+            if not data:
+                header = _cells(line[1:])
+        elif line:
+            data.append(line)
+    if data and not any(_is_number(c) for c in _cells(data[0])):
+        header = _cells(data.pop(0))
+    expected = ", ".join(layout)
+    if not data:
+        raise TrackError(f"{path}: no data rows (expected {expected})")
+    rows = [_cells(line) for line in data]
+    lower = [h.lower() for h in header]
+    if all(any(n in lower for n in alias) for alias in names):
+        width = len(header)
+        index = [next(lower.index(n) for n in alias if n in lower) for alias in names]
+        fits = f"{what} has {width} by its header ({', '.join(header)})"
+    else:
+        width = len(layout)
+        index = [layout.index(alias[0]) for alias in names]
+        fits = f"{what} has {width} ({expected})"
+    bad = next((i for i, r in enumerate(rows) if len(r) != width), None)
+    if bad is not None:
+        raise TrackError(f"{path}: row {bad + 1} has {len(rows[bad])} columns; {fits}")
+    try:
+        return np.array([[float(r[i]) for i in index] for r in rows], dtype=np.float64)
+    except ValueError as err:
+        raise TrackError(f"{path}: not a number ({err})") from None
+
+
 def read_f1tenth(
     path: Path, name: str | None = None, options: ImportOptions | None = None
 ) -> Track:
-    """Load an F1TENTH race-track CSV (``# x_m, y_m, w_tr_right_m, w_tr_left_m``).
+    """Load an F1TENTH race-track CSV (``# x_m, y_m, w_tr_right_m, w_tr_left_m``), or a
+    waypoint CSV whose header names ``x_m, y_m, d_right, d_left`` (ForzaETH / MapZoo).
 
     Consecutive repeated points are dropped and half-widths wider than a bend's radius are
     narrowed there (see :func:`tracks.validation.fit_widths`); ``track.import_notes`` says
     what changed.
     """
     opts = options or ImportOptions()
-    text = _read_bytes(path).decode("utf-8", errors="replace")
-    rows = [r for r in csv.reader(io.StringIO(text)) if r and not r[0].lstrip().startswith("#")]
-    if not rows:
-        raise TrackError(f"{path}: no data rows (expected x_m, y_m, w_tr_right_m, w_tr_left_m)")
-    if any(len(r) != 4 for r in rows):
-        bad = next(i for i, r in enumerate(rows) if len(r) != 4)
-        raise TrackError(
-            f"{path}: row {bad + 1} has {len(rows[bad])} columns; an F1TENTH track has 4 "
-            "(x_m, y_m, w_tr_right_m, w_tr_left_m)"
-        )
-    try:
-        arr = np.array([[float(v) for v in r] for r in rows])
-    except ValueError as err:
-        raise TrackError(f"{path}: not a number ({err})") from None
+    arr = read_columns(path, CENTRELINE_COLUMNS, CENTRELINE_NAMES, "an F1TENTH track")
     notes: list[str] = []
     arr = _without_repeats(arr, notes)
     arr = arr * opts.scale
@@ -418,27 +473,14 @@ RACELINE_COLUMNS = ("s_m", "x_m", "y_m", "psi_rad", "kappa_radpm", "vx_mps", "ax
 def read_raceline(path: Path, scale: float = 1.0) -> Raceline:
     """Load an F1TENTH race-line CSV (``# s_m; x_m; y_m; psi_rad; kappa_radpm; vx_mps;
     ax_mps2``, semicolon separated, ``#`` comment lines; the loop closed by repeating the
-    first point). Only x, y and vx are used: headings and curvature follow from the points.
+    first point), or one whose header names ``x_m``, ``y_m`` and ``vx_mps`` among others
+    (the ForzaETH race stack / MapZoo ``*_racing_line.csv``). Only x, y and vx are used:
+    headings and curvature follow from the points.
     """
-    text = _read_bytes(path).decode("utf-8", errors="replace")
-    rows = [
-        [c.strip() for c in line.split(";")]
-        for line in text.splitlines()
-        if line.strip() and not line.lstrip().startswith("#")
-    ]
-    if not rows:
-        raise TrackError(f"{path}: no data rows (expected {'; '.join(RACELINE_COLUMNS)})")
-    bad = next((i for i, r in enumerate(rows) if len(r) != len(RACELINE_COLUMNS)), None)
-    if bad is not None:
-        raise TrackError(
-            f"{path}: row {bad + 1} has {len(rows[bad])} columns; an F1TENTH race line has "
-            f"{len(RACELINE_COLUMNS)} ({'; '.join(RACELINE_COLUMNS)}), separated by ';'"
-        )
-    try:
-        arr = np.array([[float(v) for v in r] for r in rows])
-    except ValueError as err:
-        raise TrackError(f"{path}: not a number ({err})") from None
-    pts, speed = arr[:, 1:3], arr[:, 5]
+    arr = read_columns(
+        path, RACELINE_COLUMNS, (("x_m",), ("y_m",), ("vx_mps",)), "an F1TENTH race line"
+    )
+    pts, speed = arr[:, :2], arr[:, 2]
     if np.isfinite(pts).all():
         keep, _ = _drop_repeats(pts)
         pts, speed = pts[keep], speed[keep]

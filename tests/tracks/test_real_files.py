@@ -9,6 +9,12 @@ The shapes follow the real collections:
 * F1TENTH race lines (same repository, ``Spielberg/Spielberg_raceline.csv``): two ``#`` id
   lines, then ``# s_m; x_m; y_m; psi_rad; kappa_radpm; vx_mps; ax_mps2`` and
   semicolon-separated rows 0.2 m apart, the first point repeated at the end.
+* ForzaETH race-stack waypoint CSVs, as MapZoo (github.com/zhouhengli/MapZoo) publishes the
+  F1TENTH maps: ``Spielberg/Spielberg_centerline.csv`` and ``..._racing_line.csv`` start with
+  a bare header ``id; s_m; d_m; x_m; y_m; d_right; d_left; psi_rad; kappa_radpm; vx_mps;
+  ax_mps2`` (no ``#``), then semicolon-separated rows 0.1 m apart with 8 decimals and
+  half-widths that vary along the lap (Spielberg: d_right 1.55-1.71, d_left 1.49-1.58 m in
+  its first 14 m); the centre line's speed columns are zero.
 * DeepRacer tracks (the DeepRacer simulation's ``routes/*.npy``, as in
   aws-deepracer-community/deepracer-race-data ``raw_data/tracks/npy``): an (N, 6) float array of
   centre, inner and outer points 0.2-0.6 m apart, closed by repeating the first row; several
@@ -130,6 +136,77 @@ def test_consecutive_repeated_row_is_dropped(tmp_path: Path) -> None:
     pts = np.insert(pts, 40, pts[40], axis=0)  # one row written twice
     track = read_f1tenth(write_f1tenth_centreline(tmp_path / "dup.csv", pts))
     assert "dropped 1 repeated row(s)" in track.import_notes
+
+
+# ---- ForzaETH / MapZoo waypoint CSVs: columns picked by their header's names ---------------
+
+MAPZOO_HEADER = "id; s_m; d_m; x_m; y_m; d_right; d_left; psi_rad; kappa_radpm; vx_mps; ax_mps2"
+
+
+def write_mapzoo(path: Path, points: np.ndarray, speed: float = 0.0) -> tuple[Path, np.ndarray]:
+    """A MapZoo ``*_centerline.csv`` (speed 0) or ``*_racing_line.csv``: its bare header and
+    11 columns; returns the path and the rows' (K, 3) ``s, d_right, d_left``."""
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))])
+    phase = 2 * np.pi * s / s[-1]
+    d_right, d_left = 1.6 + 0.1 * np.sin(phase), 1.4 + 0.1 * np.cos(phase)
+    lines = [MAPZOO_HEADER]
+    for i, ((x, y), si, r, left) in enumerate(zip(points, s, d_right, d_left, strict=True)):
+        lines.append(
+            f"{i};{si:.8f};0.00000000;{x:.8f};{y:.8f};{r:.8f};{left:.8f};"
+            f"0.00000000;0.10000000;{speed:.8f};0.00000000"
+        )
+    path.write_text("\n".join(lines) + "\n")
+    return path, np.column_stack([s, d_right, d_left])
+
+
+def test_mapzoo_centre_line_is_read_by_its_column_names(tmp_path: Path) -> None:
+    # Was refused: "row 1 has 1 columns; an F1TENTH track has 4" (split on ',' only, and
+    # the bare header taken for data).
+    path, cols = write_mapzoo(tmp_path / "Spielberg_centerline.csv", stadium_points(30, 8, 0.1))
+    track = read_track_file(path)  # .csv: the F1TENTH importer
+    assert track.name == "Spielberg"
+    assert track.length == pytest.approx(cols[-1, 0], rel=0.01)
+    # d_right and d_left (not the d_m, psi or kappa columns) are the half-widths, per point
+    period = cols[-1, 0]
+    right = np.interp(track.s, cols[:, 0], cols[:, 1], period=period)
+    left = np.interp(track.s, cols[:, 0], cols[:, 2], period=period)
+    np.testing.assert_allclose(track.width_right, right, atol=0.02)
+    np.testing.assert_allclose(track.width_left, left, atol=0.02)
+
+
+def test_mapzoo_racing_line_speed_is_the_vx_column(tmp_path: Path) -> None:
+    pts = stadium_points(30, 8, 0.1)
+    path, _ = write_mapzoo(tmp_path / "Spielberg_racing_line.csv", pts, speed=6.5)
+    line = read_raceline(path)
+    assert len(line.points) == len(pts)
+    np.testing.assert_allclose(line.points, pts, atol=1e-7)
+    np.testing.assert_allclose(line.speed, 6.5)
+
+
+def test_bare_comma_header_in_its_own_order_is_read_by_name(tmp_path: Path) -> None:
+    # What pandas' to_csv(index=False) writes for a centre line kept as a DataFrame: a
+    # header without '#', and here the columns in another order.
+    pts = stadium_points(30, 8, 0.2)
+    rows = [f"{y:.6f},{x:.6f},1.3,1.2" for x, y in pts]
+    path = tmp_path / "t.csv"
+    path.write_text("y_m,x_m,w_tr_left_m,w_tr_right_m\n" + "\n".join(rows) + "\n")
+    track = read_f1tenth(path)
+    assert track.length == pytest.approx(Track(pts, 1.0, 1.0).length, rel=1e-3)
+    np.testing.assert_allclose(track.width_left, 1.3, atol=1e-6)
+    np.testing.assert_allclose(track.width_right, 1.2, atol=1e-6)
+
+
+def test_mapzoo_row_cut_short_is_a_clear_error(tmp_path: Path) -> None:
+    path, _ = write_mapzoo(tmp_path / "cut.csv", stadium_points(30, 8, 0.1))
+    lines = path.read_text().splitlines()
+    lines[5] = lines[5].rsplit(";", 1)[0]  # the 5th data row loses its last field
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(TrackError, match=r"row 5 has 10 columns; an F1TENTH track has 11 by"):
+        read_f1tenth(path)
+    missing = tmp_path / "nowidth.csv"  # a header without widths: the 4-column layout applies
+    missing.write_text("id; x_m; y_m\n0; 1; 2\n")
+    with pytest.raises(TrackError, match="row 1 has 3 columns; an F1TENTH track has 4"):
+        read_f1tenth(missing)
 
 
 # ---- DeepRacer .npy: repeated rows, borders from the file --------------------------------------
