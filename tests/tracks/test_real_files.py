@@ -41,7 +41,7 @@ from tracks.formats import (
 )
 from tracks.geometry import TIGHTEN_TOLERANCE, three_point_curvature
 from tracks.plot import plot_track, raceline_collection
-from tracks.validation import FOLD_FRACTION
+from tracks.validation import FOLD_FRACTION, fit_widths
 
 HAIRPIN_S = 12.0 + np.pi * 0.6 / 2  # m: the apex of hairpin_points()
 
@@ -371,3 +371,19 @@ def test_wall_offsets_keep_walls_off_the_road(tmp_path: Path) -> None:
     # inner edge meets itself at the apex); the naive offset puts many more there.
     assert track.on_road(walls, -0.02).sum() <= track.on_road(edge, -0.02).sum()
     assert track.on_road(naive, -0.02).sum() > track.on_road(edge, -0.02).sum() + 10
+
+
+def test_cuts_under_five_millimetres_share_one_note(tmp_path: Path) -> None:
+    # MapZoo's Spielberg (0.1 m points, slightly noisy) gave lines such as "narrowed the left
+    # half-width at s=20.8-20.9 m by up to 0.00 m": cuts of 1-4 mm. They are still made, but
+    # counted in one line; every listed cut shows a figure of at least 0.01 m.
+    stadium_pts = stadium_points(30.0, 10.0, 0.2)  # anticlockwise: left is the inside
+    kappa = Track(stadium_pts, 1.0, 1.0).curvature.max()
+    fold = FOLD_FRACTION / kappa  # the inner half-width its tightest point allows
+    for extra, listed in ((0.003, False), (0.05, True)):
+        track = Track(stadium_pts, fold + extra, 1.0, validate=False)
+        fitted, notes = fit_widths(track)
+        assert fitted.width_left.min() == pytest.approx(fold, abs=1e-3)  # cut either way
+        assert not any("0.00 m" in n for n in notes)
+        assert any("by under 5 mm at" in n for n in notes), notes  # the two 3 mm bends
+        assert any(f"by up to {extra:.2f} m" in n for n in notes) == listed, notes
