@@ -183,7 +183,7 @@ def track_to_dict(track: Track) -> dict[str, Any]:
 def read_json(path: Path) -> Track:
     """Load one of our JSON track files."""
     try:
-        data = json.loads(_read_bytes(path).decode("utf-8"))
+        data = json.loads(_read_bytes(path).decode("utf-8-sig"))  # a BOM (Windows editors)
     except (UnicodeDecodeError, json.JSONDecodeError) as err:
         raise TrackError(f"{path}: not valid JSON ({err})") from None
     return track_from_dict(data, source=str(path))
@@ -308,7 +308,9 @@ def read_columns(
     are picked by name from rows of its width, else every row must match ``layout``.
     Raises TrackError naming the row that does not fit, or the cell that is not a number.
     """
-    text = _read_bytes(path).decode("utf-8", errors="replace")
+    # utf-8-sig: a CSV saved by Excel ("CSV UTF-8") starts with a byte-order mark, which
+    # would make the first cell a name and drop the first point
+    text = _read_bytes(path).decode("utf-8-sig", errors="replace")
     header: list[str] = []
     data: list[str] = []
     for raw in text.splitlines():

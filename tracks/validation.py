@@ -229,7 +229,7 @@ def _narrowing_notes(
 ) -> list[str]:
     """One line per contiguous stretch where a side was narrowed by more than ``tol`` m; the
     stretches whose largest cut is under :data:`NOTE_CUT` (dense, slightly noisy centre
-    lines such as MapZoo's 0.1 m files give dozens of 1-4 mm cuts) share one line."""
+    lines such as MapZoo's 0.1 m files give a few 1-4 mm cuts each) share one line."""
     cut = before - after > tol
     if not cut.any():
         return []

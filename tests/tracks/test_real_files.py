@@ -387,3 +387,22 @@ def test_cuts_under_five_millimetres_share_one_note(tmp_path: Path) -> None:
         assert not any("0.00 m" in n for n in notes)
         assert any("by under 5 mm at" in n for n in notes), notes  # the two 3 mm bends
         assert any(f"by up to {extra:.2f} m" in n for n in notes) == listed, notes
+
+
+@pytest.mark.parametrize("header", ["# x_m,y_m,w_tr_right_m,w_tr_left_m\n", ""])
+def test_a_byte_order_mark_loses_no_point(tmp_path: Path, header: str) -> None:
+    # Excel's "CSV UTF-8" and Windows editors start the file with a BOM (U+FEFF): it was
+    # refused ("not a number"), and a reader looking for a header line would take the
+    # first row for names and drop that point.
+    pts = stadium_points(30, 8, 0.5)
+    rows = "\n".join(f"{x:.6f},{y:.6f},1.2,1.2" for x, y in pts)
+    path = tmp_path / "bom.csv"
+    path.write_bytes(("\ufeff" + header + rows + "\n").encode("utf-8"))
+    plain = tmp_path / "plain.csv"
+    plain.write_text(header + rows + "\n")
+    np.testing.assert_allclose(read_f1tenth(path).centre, read_f1tenth(plain).centre)
+    as_json = tmp_path / "t.json"
+    write_json(read_f1tenth(plain), as_json)
+    bom_json = tmp_path / "bom.json"
+    bom_json.write_bytes(b"\xef\xbb\xbf" + as_json.read_bytes())
+    assert read_track_file(bom_json).length == pytest.approx(read_track_file(as_json).length)
