@@ -339,7 +339,7 @@ def read_model_metadata(path: Path, preset: DeepRacerPreset = DEEPRACER_PRESET) 
     if path.stat().st_size > 1_000_000:
         raise DeepRacerError(f"{path}: {path.stat().st_size} bytes; model_metadata.json is small")
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
+        data = json.loads(path.read_text(encoding="utf-8-sig"))  # a BOM: Windows editors
     except (UnicodeDecodeError, json.JSONDecodeError) as err:
         raise DeepRacerError(f"{path}: not valid JSON ({err})") from None
     try:

@@ -374,6 +374,9 @@ def test_model_metadata_becomes_an_action_table(tmp_path: Path) -> None:
     np.testing.assert_allclose(steer, [1.0, 0.0])
     assert throttle[0] == pytest.approx(0.0) and throttle[1] < 0  # hold 0.6, brake to 1.2
     assert action_table(MODEL_METADATA["action_space"]).n == 10  # the bare list works too
+    # saved by a Windows editor (Notepad's "UTF-8 with BOM"): was "not valid JSON"
+    path.write_bytes(b"\xef\xbb\xbf" + json.dumps(MODEL_METADATA).encode())
+    assert read_model_metadata(path).n == 10
     assert DEEPRACER_PRESET.control_hz == 15.0 and DEEPRACER_PRESET.car == "deepracer"
 
 
