@@ -230,8 +230,8 @@ def results_table(result: dict[str, Any]) -> Any:
     from rich.table import Table
 
     table = Table(
-        title=f"{result['track']} · {result['laps']} laps · seed {result['seed']}"
-        + (" · ranked" if result["ranked"] else "")
+        title=f"{result['track']} · {result['laps']} lap{'s' if result['laps'] != 1 else ''}"
+        f" · seed {result['seed']}" + (" · ranked" if result["ranked"] else "")
     )
     for col in ("pos", "name", "laps", "best lap", "total time", "penalties", "status"):
         table.add_column(col, justify="left" if col in ("name", "status") else "right")

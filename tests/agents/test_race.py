@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from agents.baselines import make_baseline
+from agents.cli import results_table
 from arena.observations import ObservationLayout
 from arena.race import RESULT_SCHEMA, run_race
 from arena.sim import CarParams
@@ -130,3 +131,14 @@ def test_cli_race_bad_agent_is_one_line_error(capsys: pytest.CaptureFixture[str]
     err = capsys.readouterr().err.strip().splitlines()
     assert code == EXIT_USER_ERROR
     assert len(err) == 1 and err[0].startswith("slipstream: error: ")
+
+
+def test_results_table_title_counts_laps_in_english() -> None:
+    # `slipstream race --laps 1` titled its table "hangar · 1 laps · seed 0".
+    car = {"position": 1, "name": "pursuit", "laps_completed": 1, "best_lap": 25.75}
+    car |= {"total_time": 25.75, "penalties": 0.0, "status": "finished", "dnf_reason": None}
+    base = {"track": "hangar", "seed": 0, "ranked": False, "cars": [car]}
+    assert results_table(base | {"laps": 1}).title == "hangar · 1 lap · seed 0"
+    assert results_table(base | {"laps": 2, "ranked": True}).title == (
+        "hangar · 2 laps · seed 0 · ranked"
+    )
