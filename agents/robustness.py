@@ -688,8 +688,7 @@ def load_weights(model: Any, path: Path) -> None:
 def _nature_env(args: Any, racer_env: Any, env_kwargs: dict[str, Any], k: int) -> Any:
     """The races nature ``k`` of ``slipstream train`` learns in: the natures of every car of
     half as many races as the racers', on the fixed training tracks, seeded apart."""
-    from agents.selfplay import SelfPlayVecEnv  # noqa: PLC0415 - heavy
-    from agents.train import _batch_vec_env, training_tracks  # noqa: PLC0415 - heavy
+    from agents.train import _batch_vec_env, _selfplay_vec_env  # noqa: PLC0415 - heavy
 
     n_envs, seed = max(1, args.n_envs // 2), args.seed + 10_000 + k
     if args.backend == "batch":
@@ -700,19 +699,7 @@ def _nature_env(args: Any, racer_env: Any, env_kwargs: dict[str, Any], k: int) -
                 args, env_kwargs["uncertainty"], seed=seed, n_envs=n_envs, procedural=False
             )
         )
-    env = SelfPlayVecEnv(
-        training_tracks(args),
-        n_envs=n_envs,
-        n_cars=args.n_cars,
-        n_learners=args.n_learners,
-        laps=args.train_laps,
-        randomise=args.randomise,
-        reward_scale=args.reward_scale,
-        dnf_penalty=args.dnf_penalty,
-        seed=seed,
-        env_kwargs=env_kwargs,
-        role="nature",
-    )
+    env = _selfplay_vec_env(args, env_kwargs, seed=seed, n_envs=n_envs, role="nature")
     env.pool = racer_env.pool  # the same opponents
     return env
 

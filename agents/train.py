@@ -670,6 +670,28 @@ def _batch_vec_env(
     )
 
 
+def _selfplay_vec_env(
+    args: TrainArgs, env_kwargs: dict[str, Any], *, seed: int, n_envs: int, **extra: Any
+) -> Any:
+    """The pybullet training env of ``args`` (:class:`agents.selfplay.SelfPlayVecEnv` on the
+    training tracks); ``extra`` goes to it as is (``pool``, ``procedural``, ``role``)."""
+    from agents.selfplay import SelfPlayVecEnv  # noqa: PLC0415 - heavy, imported on use
+
+    return SelfPlayVecEnv(
+        training_tracks(args),
+        n_envs=n_envs,
+        n_cars=args.n_cars,
+        n_learners=args.n_learners,
+        laps=args.train_laps,
+        randomise=args.randomise,
+        reward_scale=args.reward_scale,
+        dnf_penalty=args.dnf_penalty,
+        seed=seed,
+        env_kwargs=env_kwargs,
+        **extra,
+    )
+
+
 REDRAW_SAMPLES = 8192  # agent-steps of rollouts per redrawn generated track (batch backend)
 
 
@@ -838,7 +860,6 @@ def main(args: TrainArgs) -> dict[str, Any]:
     from agents.loading import load_policy  # noqa: PLC0415 - heavy, imported on use
     from agents.selfplay import (  # noqa: PLC0415 - heavy, imported on use
         OpponentPool,
-        SelfPlayVecEnv,
         parse_mix,
     )
     from arena.cars import car_name, car_params  # noqa: PLC0415 - heavy, imported on use
@@ -868,19 +889,13 @@ def main(args: TrainArgs) -> dict[str, Any]:
         # With a curriculum the first episodes already draw from the narrowest bounds.
         vec_env = _batch_vec_env(args, full.scaled(CURRICULUM_START) if args.curriculum else full)
     else:
-        vec_env = SelfPlayVecEnv(
-            training_tracks(args),
-            n_envs=args.n_envs,
-            n_cars=args.n_cars,
-            n_learners=args.n_learners,
-            pool=pool,
-            laps=args.train_laps,
-            randomise=args.randomise,
-            reward_scale=args.reward_scale,
-            dnf_penalty=args.dnf_penalty,
-            procedural=procedural_of(args),
+        vec_env = _selfplay_vec_env(
+            args,
+            train_env_kwargs,
             seed=args.seed,
-            env_kwargs=train_env_kwargs,
+            n_envs=args.n_envs,
+            pool=pool,
+            procedural=procedural_of(args),
         )
     vec_env.seed(args.seed)
     lr = args.learning_rate
