@@ -69,8 +69,13 @@ SMALL_GRID = {
 }
 
 
-def t_interval(values: list[float], level: float = 0.95) -> dict[str, float]:
-    """Mean and the two-sided t confidence interval of the mean (zero width for one value)."""
+def t_interval(
+    values: list[float], level: float = 0.95, bounds: tuple[float, float] | None = None
+) -> dict[str, float]:
+    """Mean and the two-sided t confidence interval of the mean (zero width for one value).
+
+    ``bounds`` clips the interval to the values the quantity can take (a share: (0, 1)).
+    """
     from scipy import stats
 
     v = np.asarray(values, dtype=np.float64)
@@ -78,7 +83,10 @@ def t_interval(values: list[float], level: float = 0.95) -> dict[str, float]:
     if len(v) < 2:
         return {"mean": mean, "lo": mean, "hi": mean, "n": len(v)}
     half = float(stats.t.ppf(0.5 + level / 2, len(v) - 1) * v.std(ddof=1) / math.sqrt(len(v)))
-    return {"mean": mean, "lo": mean - half, "hi": mean + half, "n": len(v)}
+    lo, hi = mean - half, mean + half
+    if bounds is not None:
+        lo, hi = max(lo, bounds[0]), min(hi, bounds[1])
+    return {"mean": mean, "lo": lo, "hi": hi, "n": len(v)}
 
 
 def paired_test(robust: list[float], nominal: list[float]) -> dict[str, float]:
@@ -218,7 +226,10 @@ def summarise_arms(runs: dict[str, dict[int, dict[str, dict[str, float]]]]) -> d
             key: [float(np.mean([t[key] for t in run.values()])) for run in ordered]
             for key in ("nominal", "worst10_mean", "worst", "dnf_share")
         }
-        per_arm[arm] = {key: t_interval(vals) for key, vals in series[arm].items()}
+        per_arm[arm] = {
+            key: t_interval(vals, bounds=(0.0, 1.0) if key == "dnf_share" else None)
+            for key, vals in series[arm].items()
+        }
     if "nominal" in series:
         base = series["nominal"]
         for arm in series:
