@@ -11,7 +11,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from agents.robustness import GRID, SCALES
+from agents.robustness import AXES, GRID, SCALES
 
 
 def register(sub: Any) -> None:
@@ -21,7 +21,9 @@ def register(sub: Any) -> None:
         help="score a policy under model uncertainty: grid, random draws, trained nature",
         description=(
             "Race POLICY alone on a track, nominally and over a grid of perturbations "
-            "(friction × motor gain × steering offset × latency), on random draws of the "
+            "(friction × motor gain × steering offset × latency by default; --mass, "
+            "--steer-gain, --action-noise, --lidar-noise and --lidar-dropout add axes), on "
+            "random draws of the "
             "default uncertainty set and against a freshly trained nature; prints the "
             "nominal score, the random mean, the worst case, the worst-10 % mean and "
             "worst/nominal (scores: effective speed, m/s), and saves a JSON report and a "
@@ -49,6 +51,16 @@ def register(sub: Any) -> None:
             metavar="X",
             help=f"grid values of {name} (default: {' '.join(map(str, values))})",
         )
+    for name in AXES:
+        if name not in GRID:
+            p.add_argument(
+                "--" + name.replace("_", "-"),
+                type=float,
+                nargs="+",
+                default=None,
+                metavar="X",
+                help=f"add {name} to the grid, over these values (nominal {AXES[name]:g})",
+            )
     p.add_argument(
         "--scales",
         type=float,
@@ -116,7 +128,7 @@ def robustness_command(args: argparse.Namespace) -> int:
         raise PolicyError("--starts must be fractions of the lap in [0, 1)")
     load_track(args.track)  # a clear error before anything heavy
     policy = load_policy(args.policy, trusted=args.trusted)
-    grid = {name: tuple(getattr(args, name)) for name in GRID}
+    grid = {name: tuple(v) for name in AXES if (v := getattr(args, name)) is not None}
     to_stdout = args.json is not None and str(args.json) == "-"
     console = Console(stderr=to_stdout)
     with progress_bar(console, "[bold]{task.description}") as bar:

@@ -56,6 +56,16 @@ GRID: dict[str, tuple[float, ...]] = {
     "latency": (0, 1, 2),
 }
 NOMINAL = {"friction": 1.0, "motor": 1.0, "steer_offset": 0.0, "latency": 0}
+AXES: dict[str, float] = {
+    **NOMINAL,
+    "mass": 1.0,
+    "steer_gain": 1.0,
+    "action_noise": 0.0,
+    "lidar_noise": 0.0,
+    "lidar_dropout": 0.0,
+}
+"""Every parameter a grid may vary (:mod:`arena.uncertainty`'s names), with its nominal value;
+:data:`GRID` varies the first four, a grid of one's own any of them."""
 SCALES = (0.0, 0.25, 0.5, 0.75, 1.0)
 WORST_SHARE = 0.1  # the "worst-10 %" tail
 ProgressFn = Callable[[str, int, int], None]
@@ -250,13 +260,23 @@ class GridPoint:
 def grid_points(
     scale: float = 1.0, grid: dict[str, tuple[float, ...]] | None = None
 ) -> list[dict[str, float]]:
-    """The grid's points shrunk about nominal by ``scale`` (latency rounded), deduplicated."""
+    """The grid's points shrunk about nominal by ``scale`` (latency rounded), deduplicated.
+
+    Raises:
+        PolicyError: an axis that is not one of :data:`AXES`, or one without values.
+    """
     grid = grid or GRID
+    unknown = [name for name in grid if name not in AXES]
+    if unknown or not all(grid.values()):
+        raise PolicyError(
+            f"a grid varies some of {', '.join(AXES)}, each over at least one value; "
+            f"got {', '.join(f'{k}: {list(v)}' for k, v in grid.items())}"
+        )
     seen: dict[tuple[float, ...], dict[str, float]] = {}
     for combo in itertools.product(*grid.values()):
         point = {}
         for name, value in zip(grid, combo, strict=True):
-            v = NOMINAL[name] + scale * (value - NOMINAL[name])
+            v = AXES[name] + scale * (value - AXES[name])
             point[name] = float(round(v)) if name == "latency" else round(v, 6)
         seen.setdefault(tuple(point.values()), point)
     return list(seen.values())
@@ -332,7 +352,7 @@ def evaluate_robustness(
         n_random: random draws of the default set (0: skip).
         nature_steps: PPO steps to train the nature (0: skip; always on pybullet).
         scales: bound scales for the degradation curve (0 and 1 are always included).
-        grid: parameter values per axis (default :data:`GRID`).
+        grid: parameter values per axis, any of :data:`AXES` (default :data:`GRID`).
         starts: standing starts, as fractions of the lap (0: the grid); every grid point
             is raced from each and scored by the mean; random draw k starts from
             ``starts[k % len(starts)]``.
@@ -344,7 +364,11 @@ def evaluate_robustness(
         confirm: worst grid points re-run on pybullet with ``backend="batch"``.
         device: array device of the batch backend.
     """
-    from arena.uncertainty import default_config  # noqa: PLC0415 - heavy, imported on use
+    from arena.uncertainty import (  # noqa: PLC0415 - heavy, imported on use
+        Perturbation,
+        UncertaintyError,
+        default_config,
+    )
 
     if not starts:
         raise PolicyError("robustness needs at least one start")
@@ -353,14 +377,20 @@ def evaluate_robustness(
     tell = progress or (lambda stage, done, total: None)
     curve_scales = sorted(set(scales) | {0.0, 1.0})  # s = 0 is the nominal race
     points_at = {s: grid_points(s, grid) for s in curve_scales}
+    base = {name: AXES[name] for name in grid or GRID}  # the grid's nominal point
     unique = {tuple(p.values()): p for pts in points_at.values() for p in pts}
-    unique.setdefault(tuple(NOMINAL.values()), dict(NOMINAL))
+    unique.setdefault(tuple(base.values()), base)
     points = list(unique.values())
+    for point in points:  # a value the simulator cannot take fails here, before any race
+        try:
+            Perturbation.from_mapping(point, 1)
+        except UncertaintyError as err:
+            raise PolicyError(f"grid point {point}: {err}") from None
     if backend == "batch":
         cache = _batch_points(policy, track, points, starts, laps, seed, device, tell)
     else:
         cache = _pybullet_points(policy, track, points, starts, laps, seed, tell)
-    nominal = cache[tuple(NOMINAL.values())].score
+    nominal = cache[tuple(base.values())].score
     degradation = []
     for s, pts in points_at.items():
         degradation.append(

@@ -225,7 +225,10 @@ def drive_force(throttle: float, v_long: float, p: CarParams, motor: float, mass
 
     Forward: a DC motor, ``u · a_drive · gain · (1 − v / v_max)``. Negative throttle brakes at
     ``u · a_brake`` while rolling forward faster than 0.3 m/s, then drives in reverse up to
-    ``max_reverse_speed``. Rolling resistance opposes motion.
+    ``max_reverse_speed``. Those accelerations are the nominal car's (``p.mass``): the motor
+    and the brakes give the same force whatever the car weighs, so a car ``k`` times as heavy
+    (``mass`` = ``k · p.mass``) gets ``1/k`` of them. Rolling resistance (an acceleration)
+    opposes motion, its force in proportion to ``mass``.
     """
     if throttle >= 0.0:
         force = throttle * p.drive_accel * motor * (1.0 - v_long / p.max_speed)
@@ -233,7 +236,7 @@ def drive_force(throttle: float, v_long: float, p: CarParams, motor: float, mass
         force = throttle * p.brake_accel
     else:
         force = min(throttle * p.drive_accel * motor * (1.0 + v_long / p.max_reverse_speed), 0.0)
-    return mass * (force - p.rolling_resistance * math.tanh(v_long / 0.05))
+    return p.mass * force - mass * p.rolling_resistance * math.tanh(v_long / 0.05)
 
 
 class Simulator:

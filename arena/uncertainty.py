@@ -91,7 +91,7 @@ class DynamicsBounds:
     """Per-car transition uncertainty: intervals ``(lo, hi)`` around the nominal car."""
 
     friction: Interval = (1.0, 1.0)  # × tyre-road μ
-    mass: Interval = (1.0, 1.0)  # × chassis mass (and its yaw inertia)
+    mass: Interval = (1.0, 1.0)  # × chassis mass and yaw inertia (motor, brakes unchanged)
     motor: Interval = (1.0, 1.0)  # × drive force
     steer_gain: Interval = (1.0, 1.0)  # × steering command
     steer_offset: Interval = (0.0, 0.0)  # rad added to the steering target (trim)

@@ -57,15 +57,21 @@ def steer_target(cmd: Array, p: CarParams, sc: Scales, ops: NumpyOps) -> Array:
     return ops.clip(raw, -p.max_steer, p.max_steer)
 
 
-def drive_accel(throttle: Array, v_long: Array, p: CarParams, motor: Array, ops: NumpyOps) -> Array:
-    """Longitudinal drive/brake acceleration, m/s² (:func:`arena.sim.drive_force` / mass)."""
+def drive_accel(
+    throttle: Array, v_long: Array, p: CarParams, motor: Array, mass: Array, ops: NumpyOps
+) -> Array:
+    """Longitudinal drive/brake acceleration, m/s² (:func:`arena.sim.drive_force` / mass).
+
+    ``mass`` is the car's mass over the nominal one: the motor's and the brakes' forces are
+    the nominal car's, so their accelerations are divided by it; rolling resistance is not.
+    """
     forward = throttle * p.drive_accel * motor * (1.0 - v_long / p.max_speed)
     brake = throttle * p.brake_accel
     reverse = ops.minimum(
         throttle * p.drive_accel * motor * (1.0 + v_long / p.max_reverse_speed), 0.0
     )
     acc = ops.where(throttle >= 0.0, forward, ops.where(v_long > 0.3, brake, reverse))
-    return acc - p.rolling_resistance * ops.tanh(v_long / 0.05)
+    return acc / mass - p.rolling_resistance * ops.tanh(v_long / 0.05)
 
 
 def tyre_forces(
@@ -76,7 +82,7 @@ def tyre_forces(
     vx = cy * st.vx + sy * st.vy  # car frame
     vy = -sy * st.vx + cy * st.vy
     mass = p.mass * sc.mass
-    f_drive = 0.25 * mass * drive_accel(throttle, vx, p, sc.motor, ops)
+    f_drive = 0.25 * mass * drive_accel(throttle, vx, p, sc.motor, sc.mass, ops)
     wheel_mass = 0.25 * mass
     limit = 0.25 * p.friction * sc.friction * mass * GRAVITY
     gain = p.tyre_gain / dt

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from agents.baselines import make_baseline
+from agents.policy import PolicyError
 from agents.robustness import (
     GRID,
     evaluate_robustness,
@@ -330,11 +331,68 @@ def test_cli_robustness_batch_backend(capsys: pytest.CaptureFixture[str], tmp_pa
     assert len(report["confirmed"]) == 1 and report["confirmed"][0]["pybullet"] > 0.0
 
 
+def test_a_grid_of_ones_own_axes_and_heavier_cars_lap_slower_on_both_backends() -> None:
+    """A reviewer's grid over axes the default grid does not vary (mass, steering gain).
+
+    Mass used to change nothing at all: the motor, brake, grip and tyre forces all scaled
+    with it, so a car three times as heavy lapped in the same 16.05 s on both backends. Now
+    the motor and the brakes keep their force, so a heavier car accelerates and brakes less.
+    """
+    grid = {"mass": (0.8, 1.0, 1.5), "steer_gain": (1.0,)}
+    reports = [
+        evaluate_robustness(
+            pursuit(),
+            "oval",
+            n_random=0,
+            nature_steps=0,
+            scales=(1.0,),
+            grid=grid,
+            backend=backend,
+            confirm=0,
+        )
+        for backend in ("batch", "pybullet")
+    ]
+    for report in reports:
+        assert {tuple(g["perturbation"]) for g in report.grid_races} == {("mass", "steer_gain")}
+        by_mass = {g["perturbation"]["mass"]: g["score"] for g in report.grid_races}
+        assert by_mass[0.8] > by_mass[1.0] > by_mass[1.5]
+        assert report.nominal == by_mass[1.0]  # the grid's own nominal point
+    batch, bullet = ([g["score"] for g in r.grid_races] for r in reports)
+    assert batch == pytest.approx(bullet, rel=0.02)
+
+
+def test_a_grid_refuses_unknown_axes_and_impossible_values_before_racing() -> None:
+    with pytest.raises(PolicyError, match="a grid varies some of friction"):
+        evaluate_robustness(pursuit(), "oval", n_random=0, nature_steps=0, grid={"gravity": (1.0,)})
+    with pytest.raises(PolicyError, match="each over at least one value"):
+        grid_points(grid={"mass": ()})
+    with pytest.raises(PolicyError, match="mass"):  # a massless car: refused, not raced
+        evaluate_robustness(
+            pursuit(), "oval", n_random=0, nature_steps=0, grid={"mass": (0.0, 1.0)}
+        )
+
+
+def test_cli_robustness_adds_axes(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    argv = ["robustness", "pursuit", "--backend", "batch", "--random", "0", "--nature-steps", "0"]
+    axes = ["--friction", "1", "--latency", "0", "--motor", "1", "--steer-offset", "0"]
+    extra = ["--mass", "1", "1.4", "--lidar-dropout", "0", "0.3", "--scales", "1"]
+    code = cli_main([*argv, *axes, *extra, "--confirm", "0", "--out", str(tmp_path), "--json", "-"])
+    assert code == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["grid"]["n"] == 4
+    cells = {
+        (g["perturbation"]["mass"], g["perturbation"]["lidar_dropout"])
+        for g in report["grid_races"]
+    }
+    assert cells == {(1.0, 0.0), (1.0, 0.3), (1.4, 0.0), (1.4, 0.3)}
+
+
 def test_cli_robustness_user_errors(capsys: pytest.CaptureFixture[str]) -> None:
     assert cli_main(["robustness", "pursuit", "--track", "nowhere"]) == 2
     assert cli_main(["robustness", "no/such/policy.zip", "--track", "oval"]) == 2
     assert cli_main(["robustness", "pursuit", "--laps", "0"]) == 2
     assert cli_main(["robustness", "pursuit", "--starts", "0", "1.5"]) == 2
     assert cli_main(["robustness", "pursuit", "--backend", "batch", "--confirm", "-1"]) == 2
+    assert cli_main(["robustness", "pursuit", "--lidar-dropout", "0", "1.5"]) == 2
     err = capsys.readouterr().err
-    assert err.count("slipstream: error:") == 5
+    assert err.count("slipstream: error:") == 6
