@@ -42,25 +42,18 @@ def register(sub: Any) -> None:
         metavar="N",
         help="PPO steps to train the nature against the policy (0: skip)",
     )
-    for name, values in GRID.items():
+    for name, nominal in AXES.items():  # GRID's axes on by default, the others on request
+        values = GRID.get(name)
         p.add_argument(
             "--" + name.replace("_", "-"),
             type=float,
             nargs="+",
-            default=list(values),
+            default=None if values is None else list(values),
             metavar="X",
-            help=f"grid values of {name} (default: {' '.join(map(str, values))})",
+            help=f"grid values of {name} (default: {' '.join(map(str, values))})"
+            if values
+            else f"add {name} to the grid, over these values (nominal {nominal:g})",
         )
-    for name in AXES:
-        if name not in GRID:
-            p.add_argument(
-                "--" + name.replace("_", "-"),
-                type=float,
-                nargs="+",
-                default=None,
-                metavar="X",
-                help=f"add {name} to the grid, over these values (nominal {AXES[name]:g})",
-            )
     p.add_argument(
         "--scales",
         type=float,

@@ -58,11 +58,11 @@ def steer_target(cmd: Array, p: CarParams, sc: Scales, ops: NumpyOps) -> Array:
 
 
 def drive_accel(
-    throttle: Array, v_long: Array, p: CarParams, motor: Array, mass: Array, ops: NumpyOps
+    throttle: Array, v_long: Array, p: CarParams, motor: Array, mass_scale: Array, ops: NumpyOps
 ) -> Array:
     """Longitudinal drive/brake acceleration, m/s² (:func:`arena.sim.drive_force` / mass).
 
-    ``mass`` is the car's mass over the nominal one: the motor's and the brakes' forces are
+    ``mass_scale`` is the car's mass over the nominal one: the motor's and the brakes' forces are
     the nominal car's, so their accelerations are divided by it; rolling resistance is not.
     """
     forward = throttle * p.drive_accel * motor * (1.0 - v_long / p.max_speed)
@@ -71,7 +71,7 @@ def drive_accel(
         throttle * p.drive_accel * motor * (1.0 + v_long / p.max_reverse_speed), 0.0
     )
     acc = ops.where(throttle >= 0.0, forward, ops.where(v_long > 0.3, brake, reverse))
-    return acc / mass - p.rolling_resistance * ops.tanh(v_long / 0.05)
+    return acc / mass_scale - p.rolling_resistance * ops.tanh(v_long / 0.05)
 
 
 def tyre_forces(
