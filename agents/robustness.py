@@ -263,7 +263,9 @@ def grid_points(
     """The grid's points shrunk about nominal by ``scale`` (latency rounded), deduplicated.
 
     Raises:
-        PolicyError: an axis that is not one of :data:`AXES`, or one without values.
+        PolicyError: an axis that is not one of :data:`AXES`, one without values, or a
+            latency that is not a whole number of control steps (it would be rounded, so
+            the grid would not race what it names).
     """
     grid = grid or GRID
     unknown = [name for name in grid if name not in AXES]
@@ -272,6 +274,8 @@ def grid_points(
             f"a grid varies some of {', '.join(AXES)}, each over at least one value; "
             f"got {', '.join(f'{k}: {list(v)}' for k, v in grid.items())}"
         )
+    if any(v != round(v) for v in grid.get("latency", ())):
+        raise PolicyError(f"latency is whole control steps; got {list(grid['latency'])}")
     seen: dict[tuple[float, ...], dict[str, float]] = {}
     for combo in itertools.product(*grid.values()):
         point = {}

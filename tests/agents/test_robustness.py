@@ -366,6 +366,9 @@ def test_a_grid_refuses_unknown_axes_and_impossible_values_before_racing() -> No
         evaluate_robustness(pursuit(), "oval", n_random=0, nature_steps=0, grid={"gravity": (1.0,)})
     with pytest.raises(PolicyError, match="each over at least one value"):
         grid_points(grid={"mass": ()})
+    # half a step of latency would be rounded (to 0: half to even) and raced as no latency
+    with pytest.raises(PolicyError, match="latency is whole control steps"):
+        grid_points(grid={"latency": (0.0, 0.5)})
     with pytest.raises(PolicyError, match="mass"):  # a massless car: refused, not raced
         evaluate_robustness(
             pursuit(), "oval", n_random=0, nature_steps=0, grid={"mass": (0.0, 1.0)}
@@ -394,5 +397,6 @@ def test_cli_robustness_user_errors(capsys: pytest.CaptureFixture[str]) -> None:
     assert cli_main(["robustness", "pursuit", "--starts", "0", "1.5"]) == 2
     assert cli_main(["robustness", "pursuit", "--backend", "batch", "--confirm", "-1"]) == 2
     assert cli_main(["robustness", "pursuit", "--lidar-dropout", "0", "1.5"]) == 2
+    assert cli_main(["robustness", "pursuit", "--latency", "0", "0.5"]) == 2
     err = capsys.readouterr().err
-    assert err.count("slipstream: error:") == 6
+    assert err.count("slipstream: error:") == 7
