@@ -263,10 +263,16 @@ def grid_points(
     """The grid's points shrunk about nominal by ``scale`` (latency rounded), deduplicated.
 
     Raises:
-        PolicyError: an axis that is not one of :data:`AXES`, one without values, or a
-            latency that is not a whole number of control steps (it would be rounded, so
-            the grid would not race what it names).
+        PolicyError: an axis that is not one of :data:`AXES`, one without values, or a value
+            the simulator cannot take (:meth:`arena.uncertainty.Perturbation.from_mapping`:
+            mass 0, dropout 1.5, half a step of latency, which would otherwise be rounded).
+            The scaled points lie between nominal and these values, so they are valid too.
     """
+    from arena.uncertainty import (  # noqa: PLC0415 - heavy, imported on use
+        Perturbation,
+        UncertaintyError,
+    )
+
     grid = grid or GRID
     unknown = [name for name in grid if name not in AXES]
     if unknown or not all(grid.values()):
@@ -274,8 +280,11 @@ def grid_points(
             f"a grid varies some of {', '.join(AXES)}, each over at least one value; "
             f"got {', '.join(f'{k}: {list(v)}' for k, v in grid.items())}"
         )
-    if any(v != round(v) for v in grid.get("latency", ())):
-        raise PolicyError(f"latency is whole control steps; got {list(grid['latency'])}")
+    for name, values in grid.items():
+        try:
+            Perturbation.from_mapping({name: list(values)}, len(values))
+        except UncertaintyError as err:
+            raise PolicyError(f"grid {name} {list(values)}: {err}") from None
     seen: dict[tuple[float, ...], dict[str, float]] = {}
     for combo in itertools.product(*grid.values()):
         point = {}
@@ -368,11 +377,7 @@ def evaluate_robustness(
         confirm: worst grid points re-run on pybullet with ``backend="batch"``.
         device: array device of the batch backend.
     """
-    from arena.uncertainty import (  # noqa: PLC0415 - heavy, imported on use
-        Perturbation,
-        UncertaintyError,
-        default_config,
-    )
+    from arena.uncertainty import default_config  # noqa: PLC0415 - heavy, imported on use
 
     if not starts:
         raise PolicyError("robustness needs at least one start")
@@ -385,11 +390,6 @@ def evaluate_robustness(
     unique = {tuple(p.values()): p for pts in points_at.values() for p in pts}
     unique.setdefault(tuple(base.values()), base)
     points = list(unique.values())
-    for point in points:  # a value the simulator cannot take fails here, before any race
-        try:
-            Perturbation.from_mapping(point, 1)
-        except UncertaintyError as err:
-            raise PolicyError(f"grid point {point}: {err}") from None
     if backend == "batch":
         cache = _batch_points(policy, track, points, starts, laps, seed, device, tell)
     else:
