@@ -209,6 +209,12 @@ class CheckpointMeta:
         car = self.env_config.get("car", DEFAULT_CAR)
         return car if isinstance(car, str | dict) else str(car)
 
+    @property
+    def observes_perturbation(self) -> bool:
+        """Trained on perturbation-aware observations (``env_config["observe_perturbation"]``,
+        :attr:`arena.observations.ObservationLayout.context`): its races must observe so."""
+        return self.env_config.get("observe_perturbation") is True
+
     def to_dict(self) -> dict[str, Any]:
         """The ``meta.json`` document (plain JSON values)."""
         return asdict(self)
@@ -996,6 +1002,7 @@ class TorchMLPPolicy:
         self.meta = meta
         self.name = name or meta.name
         self.observation_shape = meta.observation_shape
+        self.observes_perturbation = meta.observes_perturbation
         pol = meta.policy
         n_in = math.prod(self.observation_shape)
         body, head = _build_mlp(n_in, pol.net_arch, meta.n_outputs, pol.activation)

@@ -86,6 +86,12 @@ class Episode:
     perturbation: dict[str, float] = field(default_factory=dict)
 
 
+def observation_kwargs(policy: Policy) -> dict[str, Any]:
+    """The env arguments ``policy``'s observations need: ``observe_perturbation=True`` for a
+    checkpoint trained on perturbation-aware observations, else none."""
+    return {"observe_perturbation": True} if getattr(policy, "observes_perturbation", False) else {}
+
+
 def run_episode(
     env: RacingEnv,
     policy: Policy,
@@ -183,7 +189,7 @@ def run_batch_episodes(
         raise PolicyError("one start per perturbation, and at least one race")
     sim = BatchSim(
         track, b, 1, laps, device=device, auto_reset=False,
-        start_positions=START_POSITIONS, seed=seed,
+        start_positions=START_POSITIONS, seed=seed, **observation_kwargs(policy),
     )  # fmt: skip
     ops = sim.ops
     if values is None:
@@ -418,7 +424,9 @@ def evaluate_robustness(
         else:
             from arena.env import RacingEnv  # noqa: PLC0415 - heavy, imported on use
 
-            env = RacingEnv(track=track, n_cars=1, laps=laps, uncertainty=cfg)
+            env = RacingEnv(
+                track=track, n_cars=1, laps=laps, uncertainty=cfg, **observation_kwargs(policy)
+            )
             try:
                 scores = []
                 for k in range(n_random):
@@ -479,7 +487,10 @@ def _pybullet_points(
     from arena.env import RacingEnv  # noqa: PLC0415 - heavy, imported on use
     from arena.uncertainty import UncertaintyConfig  # noqa: PLC0415 - heavy, imported on use
 
-    env = RacingEnv(track=track, n_cars=1, laps=laps, uncertainty=UncertaintyConfig("fixed"))
+    env = RacingEnv(
+        track=track, n_cars=1, laps=laps, uncertainty=UncertaintyConfig("fixed"),
+        **observation_kwargs(policy),
+    )  # fmt: skip
     out: dict[tuple[float, ...], GridPoint] = {}
     try:
         for k, point in enumerate(points):
@@ -579,7 +590,7 @@ def nature_attack(
         n_learners=1,
         laps=laps,
         seed=seed,
-        env_kwargs={"uncertainty": cfg},
+        env_kwargs={"uncertainty": cfg, **observation_kwargs(policy)},
         role="nature",
     )
     vec.racer = PolicyDriver(policy)
@@ -590,7 +601,7 @@ def nature_attack(
         frozen = SB3Driver.frozen(model.policy, "nature")
     finally:
         vec.close()
-    env = RacingEnv(track=track, n_cars=1, laps=laps, uncertainty=cfg)
+    env = RacingEnv(track=track, n_cars=1, laps=laps, uncertainty=cfg, **observation_kwargs(policy))
     try:
         eps = [run_episode(env, policy, seed=seed + k, nature=frozen) for k in range(episodes)]
     finally:

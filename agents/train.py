@@ -209,6 +209,10 @@ class TrainArgs:
     """adversarial and robust_mg on --backend batch: a population of this many natures, one
     trained per phase in turn, each race group facing one of them, drawn anew each phase
     (agents.robustness.rarl_callback)"""
+    observe_perturbation: bool = False
+    """perturbation-aware observations: each car also observes its own model-uncertainty
+    values (9 floats, 0 for the nominal car; arena.observations.CONTEXT_FEATURES), in
+    training and wherever the checkpoint is raced or scored (recorded in its env_config)"""
     init_from: Path | None = None
     """start from the policy weights of this Slipstream checkpoint (fine-tuning; the value
     network starts fresh)"""
@@ -666,6 +670,7 @@ def _batch_vec_env(
             "off_track_limit": args.off_track_limit,
             "runoff": args.runoff,
             "car_params": car_params(args.car),
+            "observe_perturbation": args.observe_perturbation,
         },
     )
 
@@ -810,6 +815,7 @@ def procedural_callback(args: TrainArgs, vec_env: Any) -> Any:
                     uncertainty=old.uncertainty, end_on_wall=old.rules.end_on_wall,
                     car_params=old.params, off_track_limit=old.off_track_limit,
                     stuck_time=old.stuck_time, runoff=old.runoff,
+                    observe_perturbation=old.layout.context,
                 )  # fmt: skip
                 new.nature = old.nature
                 vec_env.sims[k] = new
@@ -873,6 +879,8 @@ def main(args: TrainArgs) -> dict[str, Any]:
     eval_tracks = training_tracks(args, args.eval_tracks or args.tracks)
     # The env defaults (vector obs, continuous actions) with the run's car, by preset name.
     env_kwargs: dict[str, Any] = {"car": car_name(car_params(args.car))}
+    if args.observe_perturbation:
+        env_kwargs["observe_perturbation"] = True
     train_env_kwargs = training_env_kwargs(args, env_kwargs)
 
     # Seeding: one block.
@@ -968,6 +976,7 @@ def main(args: TrainArgs) -> dict[str, Any]:
         ),
         **({"curriculum": args.curriculum} if args.curriculum else {}),
         **({"natures": args.natures} if args.natures > 1 else {}),
+        **({"observe_perturbation": True} if args.observe_perturbation else {}),
         "backend": args.backend,
         "car": env_kwargs["car"],
         "track_scale": track_scale(args.car),

@@ -54,6 +54,7 @@ from arena.uncertainty import (
     PARAM_NAMES,
     Perturbation,
     nominal_values,
+    perturbation_context,
 )
 from arena.walls import DEFAULT_RUNOFF, Walls
 from tracks import Track, load_track
@@ -95,7 +96,10 @@ class RacingEnv(RaceEpisodeEnv):
     7 ``[dx, dy]`` points in the car's frame, and the ``k_opponents`` nearest cars as
     ``[present, dx, dy, dvx, dvy]`` in the car's frame; layout in
     :mod:`arena.observations`. ``"dict"``: the same, named (``lidar``, the ego feature
-    names, ``track_ahead`` (7, 2), ``opponents`` (k, 5)). ``"image"``: a 160×120
+    names, ``track_ahead`` (7, 2), ``opponents`` (k, 5)). With ``observe_perturbation=True``
+    both end with the car's own model-uncertainty values (9 floats, ``perturbation``: 0 for
+    the nominal car, fixed scales, :data:`arena.observations.CONTEXT_FEATURES`) — a
+    perturbation-aware observation, on either backend. ``"image"``: a 160×120
     grayscale ego camera (uint8, (120, 160, 1)), rendered headless with pybullet's
     TinyRenderer — slower.
 
@@ -180,7 +184,8 @@ class RacingEnv(RaceEpisodeEnv):
     ``park_finished`` (False), ``preset`` (None or ``"deepracer"``: the DeepRacer car at
     15 Hz, a car's episode ends the step it leaves the road or hits anything — DNF
     ``"off_track"`` / ``"crashed"``), ``action_table`` (a DeepRacer ``model_metadata.json``
-    path or :class:`arena.deepracer.ActionTable`: its discrete menu as the action space).
+    path or :class:`arena.deepracer.ActionTable`: its discrete menu as the action space),
+    ``observe_perturbation`` (False: see Observation Space).
 
     **Version History.**
 
@@ -189,7 +194,8 @@ class RacingEnv(RaceEpisodeEnv):
       DNF is ``"time_limit"`` on both; a mid-lap start's ``race_progress`` counts from the
       start line on both); ``state()`` and ``state_space`` always (the SimState attribute is
       now ``sim_state``); ``park_finished``; ``car=`` presets; ``preset="deepracer"`` and
-      ``action_table``; copies own their simulator.
+      ``action_table``; copies own their simulator; ``observe_perturbation`` (off by
+      default, and the default observations are unchanged by it).
       Observations, actions and rewards mean what they meant in 0.2.
 
     * 0.2: ``uncertainty`` (model-uncertainty sets, ``nature_car_i`` agents),
@@ -436,7 +442,8 @@ class RacingEnv(RaceEpisodeEnv):
         ahead = track_ahead_features(
             state.poses, points.reshape(self.n_cars, -1, 2), self.lidar.max_range
         )
-        flat = vector_observation(ranges, ego, ahead, opp, self.layout)
+        context = perturbation_context(self._values) if self.layout.context else None
+        flat = vector_observation(ranges, ego, ahead, opp, self.layout, context=context)
         if self.obs_mode == "vector":
             return list(flat)
         out: list[Obs] = []
@@ -446,6 +453,8 @@ class RacingEnv(RaceEpisodeEnv):
             for k, name in enumerate(EGO_FEATURES):
                 named[name] = ego_row[k : k + 1]
             named["track_ahead"] = row[self.layout.track_ahead].reshape(len(LOOKAHEAD), 2)
+            if self.layout.context:
+                named["perturbation"] = row[self.layout.perturbation]
             named["opponents"] = row[self.layout.opponents].reshape(
                 self.layout.k_opponents, len(OPPONENT_FEATURES)
             )

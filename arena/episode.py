@@ -49,6 +49,8 @@ from arena.deepracer import (
     read_model_metadata,
 )
 from arena.observations import (
+    CONTEXT_FEATURES,
+    CONTEXT_LIMIT,
     EGO_FEATURES,
     EGO_HIGH,
     EGO_LOW,
@@ -150,6 +152,7 @@ class RaceEpisodeEnv(ParallelEnv):
         park_finished: bool = False,
         preset: str | None = None,
         action_table: ActionTable | str | Path | None = None,
+        observe_perturbation: bool = False,
     ) -> None:
         self.end_on_crash = False
         if preset is not None:
@@ -170,6 +173,8 @@ class RaceEpisodeEnv(ParallelEnv):
             raise SimError(f"obs_mode must be one of {allowed} on this backend, got {obs_mode!r}")
         if action_mode not in ("continuous", "discrete"):
             raise SimError(f"action_mode must be 'continuous' or 'discrete', got {action_mode!r}")
+        if observe_perturbation and obs_mode == "image":
+            raise SimError("observe_perturbation needs obs_mode 'vector' or 'dict', not 'image'")
         if render_mode not in self.render_modes_supported:
             raise SimError(f"render_mode {render_mode!r} is not supported by this backend")
         if not (isinstance(reward, str) and reward in ("racing", "progress")) and not callable(
@@ -205,7 +210,7 @@ class RaceEpisodeEnv(ParallelEnv):
         self.control_hz = control_hz
         self.physics_hz = physics_hz
         self.dt = 1.0 / control_hz
-        self.layout = ObservationLayout(lidar_rays, k_opponents)
+        self.layout = ObservationLayout(lidar_rays, k_opponents, bool(observe_perturbation))
         self.discrete: DiscreteActions | ActionTable = (
             action_table
             if action_table is not None
@@ -298,6 +303,10 @@ class RaceEpisodeEnv(ParallelEnv):
             np.tile(OPP_HIGH, (k_opp, 1)).astype(np.float32),
             dtype=np.float32,
         )
+        if self.layout.context:
+            named["perturbation"] = spaces.Box(
+                -CONTEXT_LIMIT, CONTEXT_LIMIT, (len(CONTEXT_FEATURES),), dtype=np.float32
+            )
         return spaces.Dict(named)
 
     def _make_action_space(self) -> spaces.Space[Any]:

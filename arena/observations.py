@@ -2,7 +2,7 @@
 
 The ``"vector"`` observation of one car is a flat float32 array::
 
-    [ lidar (n_rays) | ego (7) | track ahead (7 × 2) | opponents (k × 5) ]
+    [ lidar (n_rays) | ego (7) | track ahead (7 × 2) | opponents (k × 5) | perturbation (9)? ]
 
 * lidar: ranges / ``max_range``, in [0, 1] (1 = nothing within range);
 * ego: forward speed / v_max, lateral speed / v_max, steering / max_steer,
@@ -29,6 +29,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import lru_cache
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -55,6 +56,21 @@ EGO_LOW = np.array([-1.0, -2.0, -1.0, -2.0, -1.0, -3.0, -2.0])
 EGO_HIGH = np.array([2.0, 2.0, 1.0, 2.0, 1.0, 3.0, 2.0])
 OPP_LOW = np.array([0.0, -1.0, -1.0, -2.0, -2.0])
 OPP_HIGH = np.array([1.0, 1.0, 1.0, 2.0, 2.0])
+# The perturbation block: parameter names (arena.uncertainty.PARAM_NAMES) and the scale of
+# each, (value - nominal) / scale; clipped to ±CONTEXT_LIMIT (latency 10 steps reads 3.3).
+CONTEXT_FEATURES = (
+    "friction",
+    "mass",
+    "motor",
+    "steer_gain",
+    "steer_offset",
+    "latency",
+    "action_noise",
+    "lidar_noise",
+    "lidar_dropout",
+)
+CONTEXT_SCALES = (0.6, 0.3, 0.3, 0.225, 0.075, 3.0, 0.15, 0.05, 0.1)
+CONTEXT_LIMIT = 4.0
 # The ego feature scaled by the road's half-width rather than by a constant.
 _IS_OFFSET = np.array([name == "lateral_offset" for name in EGO_FEATURES])
 _IS_OFFSET.flags.writeable = False
@@ -66,11 +82,12 @@ class ObservationLayout:
 
     n_rays: int
     k_opponents: int
+    context: bool = False  # the perturbation block at the end (observe_perturbation)
 
     @property
     def size(self) -> int:
         """Length of the flat vector."""
-        return self.opponents.start + len(OPPONENT_FEATURES) * self.k_opponents
+        return self.perturbation.stop
 
     @property
     def lidar(self) -> slice:
@@ -94,18 +111,27 @@ class ObservationLayout:
         start = self.track_ahead.stop
         return slice(start, start + len(OPPONENT_FEATURES) * self.k_opponents)
 
+    @property
+    def perturbation(self) -> slice:
+        """Slice of the perturbation block (empty without :attr:`context`)."""
+        start = self.opponents.stop
+        return slice(start, start + (len(CONTEXT_FEATURES) if self.context else 0))
+
     def bounds(self) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
         """Low and high bounds (size,) of the vector observation (fresh copies)."""
-        low, high = _bounds(self.n_rays, self.k_opponents)
+        low, high = _bounds(self.n_rays, self.k_opponents, self.context)
         return low.copy(), high.copy()
 
 
 @lru_cache(maxsize=64)
-def _bounds(n_rays: int, k_opponents: int) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+def _bounds(
+    n_rays: int, k_opponents: int, context: bool
+) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     """Read-only bounds of :meth:`ObservationLayout.bounds`, built once per layout."""
     ahead = np.full(2 * len(LOOKAHEAD), TRACK_LIMIT)
-    low_parts = [np.zeros(n_rays), EGO_LOW, -ahead, np.tile(OPP_LOW, k_opponents)]
-    high_parts = [np.ones(n_rays), EGO_HIGH, ahead, np.tile(OPP_HIGH, k_opponents)]
+    ctx = np.full(len(CONTEXT_FEATURES) if context else 0, CONTEXT_LIMIT)
+    low_parts = [np.zeros(n_rays), EGO_LOW, -ahead, np.tile(OPP_LOW, k_opponents), -ctx]
+    high_parts = [np.ones(n_rays), EGO_HIGH, ahead, np.tile(OPP_HIGH, k_opponents), ctx]
     low = np.concatenate(low_parts).astype(np.float32)
     high = np.concatenate(high_parts).astype(np.float32)
     low.flags.writeable = False
@@ -220,6 +246,7 @@ def vector_observation(
     opponents: FloatArray,
     layout: ObservationLayout,
     ops: NumpyOps = NUMPY,
+    context: FloatArray | None = None,
 ) -> NDArray[np.float32]:
     """Flat observations (..., n, size) float32, clipped into the observation bounds.
 
@@ -230,8 +257,39 @@ def vector_observation(
         opponents: (..., n, k, 5) from :func:`opponent_features`.
         layout: sizes of the blocks.
         ops: array namespace.
+        context: (..., n, 9) from :func:`perturbation_features`, when ``layout.context``.
+
+    Raises:
+        ValueError: ``context`` given without ``layout.context``, or missing with it.
     """
-    low, high = _bounds(layout.n_rays, layout.k_opponents)  # built once: a hot path
+    if (context is not None) != layout.context:
+        raise ValueError("the perturbation block goes with layout.context, and only with it")
+    low, high = _bounds(layout.n_rays, layout.k_opponents, False)  # built once: a hot path
     rows = tuple(ego.shape[:-1])
     flat = ops.concat([lidar, ego, ahead.reshape(*rows, -1), opponents.reshape(*rows, -1)], axis=-1)
-    return ops.cast(ops.clip(flat, ops.const(low), ops.const(high)), ops.float32)
+    out = ops.cast(ops.clip(flat, ops.const(low), ops.const(high)), ops.float32)
+    return out if context is None else with_context(out, context, ops)
+
+
+def with_context(obs: NDArray[np.float32], context: FloatArray, ops: NumpyOps = NUMPY) -> Any:
+    """Observations without the perturbation block (..., n, D) float32 with it appended
+    (..., n, D + 9), clipped to ±:data:`CONTEXT_LIMIT` (context (..., n, 9) from
+    :func:`perturbation_features`)."""
+    block = ops.cast(ops.clip(context, -CONTEXT_LIMIT, CONTEXT_LIMIT), ops.float32)
+    return ops.concat([obs, block], axis=-1)
+
+
+def perturbation_features(
+    values: FloatArray, columns: tuple[int, ...], nominal: FloatArray, ops: NumpyOps = NUMPY
+) -> FloatArray:
+    """The perturbation block (..., n, 9), unclipped: ``(values[..., columns] − nominal) /``
+    :data:`CONTEXT_SCALES`.
+
+    Args:
+        values: (..., n, n_params) perturbation values, ``arena.uncertainty.PARAM_NAMES`` order.
+        columns: the 9 columns of :data:`CONTEXT_FEATURES` in that order.
+        nominal: (9,) their nominal values.
+        ops: array namespace.
+    """
+    picked = values[..., list(columns)]
+    return (picked - ops.floats(tuple(float(x) for x in nominal))) / ops.floats(CONTEXT_SCALES)

@@ -51,6 +51,8 @@ from typing import Any, Literal, cast
 import numpy as np
 from numpy.typing import NDArray
 
+from arena.batch.xp import NUMPY, NumpyOps
+from arena.observations import CONTEXT_FEATURES, perturbation_features
 from arena.sim import CarScales
 from tracks.errors import SlipstreamError
 
@@ -78,6 +80,7 @@ PARAM_NAMES = (*DYNAMICS, *PERCEPTION, *REWARD)
 INDEX = {name: k for k, name in enumerate(PARAM_NAMES)}
 LATENCY = INDEX["latency"]
 REWARD_NOISE = INDEX["reward_noise"]
+_CONTEXT_COLUMNS = tuple(INDEX[name] for name in CONTEXT_FEATURES)
 _POSITIVE = ("friction", "mass", "motor", "steer_gain", "contrast")
 _FRACTIONS = ("lidar_dropout", "shadow")
 
@@ -307,6 +310,9 @@ def nominal_values() -> FloatArray:
     return nom
 
 
+_CONTEXT_NOMINAL = _read_only(nominal_values()[list(_CONTEXT_COLUMNS)])
+
+
 def _check_values(values: FloatArray, what: str) -> None:
     """Raise on values (n, n_params) the simulator cannot take."""
     for name in _POSITIVE:
@@ -475,6 +481,12 @@ def applied(values: FloatArray) -> FloatArray:
     out = np.array(values, dtype=np.float64, copy=True)
     out[..., LATENCY] = np.round(out[..., LATENCY])
     return out
+
+
+def perturbation_context(values: Any, ops: NumpyOps = NUMPY) -> Any:
+    """The observation's perturbation block (..., n, 9) of values (..., n, n_params)
+    (:func:`arena.observations.perturbation_features`; 0 for the nominal car)."""
+    return perturbation_features(values, _CONTEXT_COLUMNS, _CONTEXT_NOMINAL, ops)
 
 
 def normalised(cfg: UncertaintyConfig, values: FloatArray) -> FloatArray:

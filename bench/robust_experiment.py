@@ -8,7 +8,8 @@ its rollout after ``--cvar-warmup`` of the budget (:mod:`agents.cvar`; in the re
 ``robust_mg`` — Zhang et al.'s nature over dynamics and reward; ``--curriculum R`` widens
 the bounds of the domain-randomisation arms over the first R of the budget,
 :mod:`agents.curriculum`, labelled ``+curR``; ``--natures K`` gives the nature arms a
-population of K natures, labelled ``+popK``) and every seed, ``slipstream
+population of K natures, labelled ``+popK``; ``--observe-perturbation`` lets the robust
+arms observe their cars' perturbation, labelled ``+obs``) and every seed, ``slipstream
 train --backend batch`` from scratch with the same budget (``--steps`` agent-steps), the
 same tracks and ``--procedural`` share; then every policy is scored on tracks none trained
 on (``--eval-tracks``: held-out built-ins and fresh generated tracks) by ``slipstream
@@ -136,6 +137,7 @@ def train_run(args: argparse.Namespace, arm: str, seed: int) -> Path:
             cvar_warmup=args.cvar_warmup,
             curriculum=args.curriculum if arm in CURRICULUM_ARMS else 0.0,
             natures=args.natures if arm in NATURE_ARMS else 1,
+            observe_perturbation=observes(args, arm),
             nature_every=max(1, args.steps // 10),
             nature_steps=max(1, args.steps // 20),
         )
@@ -143,10 +145,17 @@ def train_run(args: argparse.Namespace, arm: str, seed: int) -> Path:
     return policy
 
 
+def observes(args: argparse.Namespace, arm: str) -> bool:
+    """``--observe-perturbation`` applies to every arm but ``nominal`` (whose cars are all
+    nominal: the block would read zeros throughout)."""
+    return bool(args.observe_perturbation) and arm != "nominal"
+
+
 def arm_label(args: argparse.Namespace, arm: str) -> str:
     """An arm's name in the results: ``cvar`` with a share other than 0.5 is ``cvar@S``, and
     with a warm-up other than 0.2 ``cvar@S,wW``; a domain-randomisation arm trained with a
-    curriculum on its bounds gets ``+curR``."""
+    curriculum on its bounds gets ``+curR``; one on perturbation-aware observations
+    ``+obs``."""
     label = arm
     if arm == "cvar" and (args.cvar_share != 0.5 or args.cvar_warmup != 0.2):
         warmup = "" if args.cvar_warmup == 0.2 else f",w{args.cvar_warmup:g}"
@@ -155,6 +164,8 @@ def arm_label(args: argparse.Namespace, arm: str) -> str:
         label += f"+cur{args.curriculum:g}"
     if args.natures > 1 and arm in NATURE_ARMS:
         label += f"+pop{args.natures}"
+    if observes(args, arm):
+        label += "+obs"
     return label
 
 
@@ -337,6 +348,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         default=1,
         help="adversarial and robust_mg arms: a population of this many natures "
         "(agents.robustness.rarl_callback)",
+    )
+    p.add_argument(
+        "--observe-perturbation",
+        action="store_true",
+        help="the robust arms observe their cars' perturbation (perturbation-aware "
+        "observations, arena.observations.CONTEXT_FEATURES; labelled +obs)",
     )
     p.add_argument("--n-envs", type=int, default=8, help="races per track group")
     p.add_argument("--n-cars", type=int, default=4)

@@ -183,6 +183,12 @@ def wrap_checkpoint(
                 "zip to convert)"
             )
         meta, _ = read_checkpoint(source)
+        if meta.observes_perturbation:
+            raise CheckpointError(
+                f"{checkpoint}: trained on perturbation-aware observations (observe_perturbation: "
+                "its car is told its own grip, latency …); ranked races observe the standard "
+                "layout without them: train without --observe-perturbation to submit"
+            )
         name = name or meta.name
         # The car it learned (a custom car's or an unknown name: the default, and races warn).
         car = meta.car if isinstance(meta.car, str) and meta.car in car_names() else DEFAULT_CAR

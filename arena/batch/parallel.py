@@ -86,6 +86,7 @@ class BatchParallelEnv(RaceEpisodeEnv):
                 physics_hz=self.physics_hz,
                 lidar_rays=self.layout.n_rays,
                 k_opponents=self.layout.k_opponents,
+                observe_perturbation=self.layout.context,
                 runoff=self.runoff,
                 car_params=self.params,
                 reward_weights=self.weights,

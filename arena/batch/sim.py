@@ -66,12 +66,14 @@ from arena.core import (
 )
 from arena.lidar import DEFAULT_FOV, DEFAULT_RANGE
 from arena.observations import (
+    CONTEXT_FEATURES,
     LOOKAHEAD,
     ObservationLayout,
     ego_features,
     opponent_features,
     track_ahead_features,
     vector_observation,
+    with_context,
     wrap_angle,
 )
 from arena.rewards import RewardWeights, race_positions
@@ -85,6 +87,7 @@ from arena.uncertainty import (
     UncertaintyConfig,
     UncertaintyError,
     normalised,
+    perturbation_context,
     perturbed_reward,
 )
 from arena.walls import DEFAULT_RUNOFF
@@ -186,6 +189,10 @@ class BatchSim:
         end_on_wall: a car that touches a wall retires at once (DNF ``"crashed"``): for
             training, so a policy learns that a wall costs the race, as on pybullet, where a
             car that hits one at speed stops dead (these soft walls let it slide on).
+        observe_perturbation: append each car's perturbation block to its observation
+            (:attr:`arena.observations.ObservationLayout.context`; zeros for a nominal car),
+            as the pybullet env's option of the same name; a new episode's first
+            observation reads the new episode's values.
     """
 
     # Model-uncertainty state, created on first use (set_perturbation / uncertainty=).
@@ -194,6 +201,7 @@ class BatchSim:
     _noise_amp: Array  # (B, N) action-noise amplitude
     _lidar_noise: Array  # (B, N) std on normalised ranges
     _dropout: Array  # (B, N) probability a ray reads max range
+    _context: Array  # (B, N, 9) perturbation blocks (observe_perturbation only)
     unc: PerturbationState
     final_nature_obs: Array
 
@@ -223,6 +231,7 @@ class BatchSim:
         seed: int | None = None,
         uncertainty: UncertaintyConfig | None = None,
         end_on_wall: bool = False,
+        observe_perturbation: bool = False,
     ) -> None:
         if not 1 <= n_cars <= 16:
             raise SimError(f"n_cars must be between 1 and 16, got {n_cars}")
@@ -246,7 +255,10 @@ class BatchSim:
         self.substeps = physics_hz // control_hz
         self.dt = 1.0 / control_hz
         self.physics_dt = 1.0 / physics_hz
-        self.layout = ObservationLayout(lidar_rays, k_opponents)
+        self.layout = ObservationLayout(lidar_rays, k_opponents, observe_perturbation)
+        self._base_layout = ObservationLayout(lidar_rays, k_opponents)  # what _observe builds
+        if observe_perturbation:
+            self._context = ops.zeros((n_envs, n_cars, len(CONTEXT_FEATURES)))
         self.max_range = DEFAULT_RANGE
         self.off_track_limit, self.stuck_time = off_track_limit, stuck_time
         self.runoff = runoff
@@ -295,7 +307,9 @@ class BatchSim:
         self.state = self._start_state(
             ops.zeros(n_envs, dtype=ops.int), self._identity_order(n_envs)
         )
-        self.obs = self._start_obs(ops.zeros(n_envs, dtype=ops.int), self._identity_order(n_envs))
+        self.obs = self._with_context(
+            self._start_obs(ops.zeros(n_envs, dtype=ops.int), self._identity_order(n_envs))
+        )
 
     # ---- construction helpers ---------------------------------------------------------------
     def nominal_scales(self, n_envs: int) -> Scales:
@@ -399,6 +413,7 @@ class BatchSim:
         if self.perturbed:
             self._fifo = self.ops.zeros(self._fifo.shape)
             self.obs = self._jitter_lidar(self.obs)
+        self.obs = self._with_context(self.obs)
         return self.obs
 
     def set_poses(self, poses: Array, velocity: Array | None = None) -> Array:
@@ -421,7 +436,7 @@ class BatchSim:
         )
         st.positions = race_positions(st.race_progress, ops)
         self.state = st
-        self.obs = self._observe(st, self.scales)
+        self.obs = self._with_context(self._observe(st, self.scales))
         return self.obs
 
     # ---- model uncertainty ------------------------------------------------------------------
@@ -470,6 +485,9 @@ class BatchSim:
         self._noise_amp = col("action_noise", self._noise_amp)
         self._lidar_noise = col("lidar_noise", self._lidar_noise)
         self._dropout = col("lidar_dropout", self._dropout)
+        if self.layout.context:
+            ctx = perturbation_context(vals, ops)
+            self._context = ops.where(mask[..., None], ctx, self._context)
 
     def set_uncertainty(self, cfg: UncertaintyConfig) -> None:
         """Draw from ``cfg``'s bounds from now on (a curriculum on the bounds widens them as
@@ -623,8 +641,13 @@ class BatchSim:
         return car, wall_any, touch_any
 
     # ---- observation ------------------------------------------------------------------------
+    def _with_context(self, obs: Array) -> Array:
+        """``obs`` (B, N, D) with the cars' perturbation block appended when
+        ``observe_perturbation`` (:func:`arena.observations.with_context`), else as is."""
+        return with_context(obs, self._context, self.ops) if self.layout.context else obs
+
     def _observe(self, st: RaceState, scales: Scales) -> Array:
-        """Vector observations (B, N, D) float32 of a state."""
+        """Vector observations (B, N, D) float32 of a state, without the perturbation block."""
         ops, p, car = self.ops, self.params, st.car
         dev = self.dev
         walls = wall_ranges(
@@ -657,7 +680,7 @@ class BatchSim:
         opp = opponent_features(
             poses, velocity, st.active, self.layout.k_opponents, self.max_range, p.max_speed, ops
         )
-        return vector_observation(lidar, ego, ahead, opp, self.layout, ops)
+        return vector_observation(lidar, ego, ahead, opp, self._base_layout, ops)
 
     # ---- step -------------------------------------------------------------------------------
     def step(self, actions: Array, nature: Any = None) -> StepResult:
@@ -709,7 +732,7 @@ class BatchSim:
             final_nature = self._nature_obs(replace(new, active=active))
             self.final_nature_obs = final_nature
         env_done = ops.any(done, axis=1)
-        final_obs = obs
+        obs = final_obs = self._with_context(obs)  # the ended episodes' own values
         if self.auto_reset:
             start, slots = self.draw_starts(self.n_envs)
             new = _merge(env_done, self._fresh(start, slots), new, ops)
@@ -726,7 +749,7 @@ class BatchSim:
                 # set_perturbation(..., envs=env_done)).
                 self._fifo = ops.where(env_done[:, None, None, None], 0.0, self._fifo)
                 fresh_obs = self._jitter_lidar(fresh_obs)
-            obs = ops.where(env_done[:, None, None], fresh_obs, obs)
+            obs = ops.where(env_done[:, None, None], self._with_context(fresh_obs), obs)
         self.state = new
         self.obs = obs
         return StepResult(
