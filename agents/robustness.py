@@ -726,7 +726,11 @@ def load_weights(model: Any, path: Path) -> None:
     own = model.policy.state_dict()
     for name, value in tensors.items():
         if name not in own or tuple(own[name].shape) != tuple(value.shape):
-            raise PolicyError(f"{path}: tensor {name} does not fit the model being trained")
+            want = tuple(own[name].shape) if name in own else "no such tensor"
+            raise PolicyError(
+                f"{path}: tensor {name} {tuple(value.shape)} does not fit the model being "
+                f"trained ({want}: other observations, e.g. --observe-perturbation, or layers?)"
+            )
     model.policy.load_state_dict({k: torch.as_tensor(v) for k, v in tensors.items()}, strict=False)
 
 

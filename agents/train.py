@@ -356,6 +356,12 @@ def _check(args: TrainArgs) -> None:
             "a population of natures (--natures > 1) needs --backend batch and --uncertainty "
             f"adversarial or robust_mg, not {args.backend}/{args.uncertainty}"
         )
+    if args.observe_perturbation and args.uncertainty == "nominal":
+        raise PolicyError(
+            "--observe-perturbation with --uncertainty nominal: every car is the nominal one, "
+            "so the block would read zeros throughout; pick sample, wide, cvar, adversarial "
+            "or robust_mg"
+        )
     if args.init_from is not None and not Path(args.init_from).is_file():
         raise PolicyError(f"init_from: no such checkpoint {args.init_from}")
     parse_mix(args.opponent_mix)  # checked even when no car is an opponent: a typo is a typo

@@ -107,6 +107,36 @@ def test_training_with_the_option_records_it_and_scores_it(tmp_path: Path) -> No
     assert report.grid["n"] == 4
 
 
+def test_training_refuses_the_option_without_uncertainty_and_a_plain_start(
+    tmp_path: Path,
+) -> None:
+    """Nominal training would observe zeros throughout, and a plain checkpoint's weights do
+    not fit a network with 9 more inputs: both stop before training, with the reason."""
+    from agents.policy import PolicyError
+    from agents.train import TrainArgs, main
+
+    with pytest.raises(PolicyError, match="nominal"):
+        main(TrainArgs(observe_perturbation=True, out=tmp_path))
+    with pytest.raises(PolicyError, match=r"\(64, 100\) does not fit .*\(64, 109\)"):
+        main(
+            TrainArgs(
+                backend="batch",
+                tracks=["oval"],
+                n_cars=2,
+                n_envs=2,
+                total_timesteps=128,
+                n_steps=64,
+                batch_size=128,
+                uncertainty="sample",
+                observe_perturbation=True,
+                init_from=Path("agents/data/ppo_racer.zip"),
+                out=tmp_path,
+                run_name="plain-start",
+                progress_bar=False,
+            )
+        )
+
+
 def test_a_redrawn_generated_track_keeps_the_block() -> None:
     """``--procedural`` rebuilds a group's simulator on a new track mid-training: the new one
     observes the perturbation too (it once did not, and PPO's next rollout broke on the
