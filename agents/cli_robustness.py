@@ -120,7 +120,8 @@ def robustness_command(args: argparse.Namespace) -> int:
     if any(not 0 <= x < 1 for x in args.starts):
         raise PolicyError("--starts must be fractions of the lap in [0, 1)")
     load_track(args.track)  # a clear error before anything heavy
-    policy = load_policy(args.policy, trusted=args.trusted)
+    # Its races are built for it: with the perturbation block if it was trained on one.
+    policy = load_policy(args.policy, trusted=args.trusted, observe_perturbation=None)
     grid = {name: tuple(v) for name in AXES if (v := getattr(args, name)) is not None}
     to_stdout = args.json is not None and str(args.json) == "-"
     console = Console(stderr=to_stdout)

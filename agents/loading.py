@@ -150,6 +150,7 @@ def load_policy(
     params: CarParams | None = None,
     trusted: bool = False,
     track: Track | None = None,
+    observe_perturbation: bool | None = False,
 ) -> Policy:
     """A policy from a baseline name or a file.
 
@@ -164,6 +165,12 @@ def load_policy(
             your own local files; an :class:`UntrustedCodeWarning` is still emitted.
         track: the race's track, for baselines that follow it (``raceline`` needs one with
             a race line).
+        observe_perturbation: whether the races it will drive observe the perturbation
+            block (:attr:`arena.observations.ObservationLayout.context`): False (a plain
+            race) refuses a Slipstream checkpoint trained on perturbation-aware observations
+            and True one trained without, naming the option; None: the caller builds its env
+            for the policy (``slipstream robustness``:
+            :func:`agents.robustness.observation_kwargs`).
 
     Returns:
         An object with ``name``, ``reset(seed)`` and ``act(obs)``.
@@ -179,6 +186,16 @@ def load_policy(
     kind = detect_format(path)
     if kind == "slipstream":
         policy = TorchMLPPolicy.from_file(path)
+        aware = policy.meta.observes_perturbation
+        if observe_perturbation is not None and aware != observe_perturbation:
+            raise CheckpointError(
+                f"{path}: trained on perturbation-aware observations (observe_perturbation: "
+                "its car is told its own grip, latency …), and these races observe without "
+                "them: score it with `slipstream robustness`"
+                if aware
+                else f"{path}: trained without perturbation-aware observations, and these "
+                "races add them (observe_perturbation)"
+            )
         mismatch = None if params is None else car_mismatch(policy.meta, params)
         if mismatch is not None:
             warnings.warn(mismatch, CarMismatchWarning, stacklevel=2)

@@ -1063,7 +1063,7 @@ def main(args: TrainArgs) -> dict[str, Any]:
         training["generated_tracks_drawn"] = len(redraw.drawn) if redraw is not None else 0
     path = export(run_dir / "policy.zip", training)
     # CleanRL: reload what was saved and race it straight away.
-    reloaded = load_policy(str(path))
+    reloaded = load_policy(str(path), observe_perturbation=args.observe_perturbation)
     final = evaluate(reloaded, eval_tracks[:1], laps=args.eval_laps, env_kwargs=env_kwargs)
     summary = {
         "run": run,

@@ -202,7 +202,7 @@ def _score(args: argparse.Namespace, policy_path: Path) -> dict[str, dict[str, f
     from agents.loading import load_policy
     from agents.robustness import evaluate_robustness
 
-    policy = load_policy(str(policy_path))
+    policy = load_policy(str(policy_path), observe_perturbation=None)
     out = {}
     for track in args.eval_tracks:
         report = evaluate_robustness(

@@ -31,17 +31,20 @@ def _aware_checkpoint(path: Path) -> Path:
 
 
 def test_the_checkpoint_says_it_observes_its_perturbation(tmp_path: Path) -> None:
-    policy = load_policy(str(_aware_checkpoint(tmp_path / "aware.zip")))
+    policy = load_policy(str(_aware_checkpoint(tmp_path / "aware.zip")), observe_perturbation=None)
     assert policy.observation_shape == (AWARE.size,)
     assert getattr(policy, "observes_perturbation", False) is True
     assert observation_kwargs(policy) == {"observe_perturbation": True}
-    plain = load_policy("agents/data/ppo_racer.zip")
+    plain = load_policy("agents/data/ppo_racer.zip", observe_perturbation=None)
     assert observation_kwargs(plain) == {}
+    # Loaded for a race that adds the block, a plain checkpoint is refused by name too.
+    with pytest.raises(CheckpointError, match="trained without perturbation-aware"):
+        load_policy("agents/data/ppo_racer.zip", observe_perturbation=True)
 
 
 @pytest.mark.parametrize("backend", ["pybullet", "batch"])
 def test_robustness_races_an_aware_policy_with_the_block(tmp_path: Path, backend: str) -> None:
-    policy = load_policy(str(_aware_checkpoint(tmp_path / "aware.zip")))
+    policy = load_policy(str(_aware_checkpoint(tmp_path / "aware.zip")), observe_perturbation=None)
     report = evaluate_robustness(
         policy, "oval", n_random=2, nature_steps=0, scales=(1.0,), grid=SMALL_GRID,
         backend=backend, confirm=1,
@@ -52,8 +55,20 @@ def test_robustness_races_an_aware_policy_with_the_block(tmp_path: Path, backend
         assert report.confirmed is not None and len(report.confirmed) == 1
 
 
-def test_a_race_without_the_block_names_the_option(tmp_path: Path) -> None:
-    policy = load_policy(str(_aware_checkpoint(tmp_path / "aware.zip")))
+def test_a_race_without_the_block_names_the_option(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``slipstream race`` observes the standard layout: an aware checkpoint stops at load,
+    with the reason and where to score it (it used to race as ``dnf (error)``, no reason);
+    and a policy that gets the wrong observations anyway names the option in its error."""
+    ckpt = _aware_checkpoint(tmp_path / "aware.zip")
+    code = cli_main(["race", "--track", "oval", "--agents", f"{ckpt},pursuit"])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert "perturbation-aware" in err and "slipstream robustness" in err
+    with pytest.raises(CheckpointError, match="perturbation-aware"):
+        load_policy(str(ckpt))
+    policy = load_policy(str(ckpt), observe_perturbation=None)
     env = RacingEnv(track="oval", n_cars=1)
     obs, _ = env.reset(seed=0)
     with pytest.raises(CheckpointError, match="observe_perturbation"):
@@ -97,7 +112,7 @@ def test_training_with_the_option_records_it_and_scores_it(tmp_path: Path) -> No
         )
     )
     assert summary["training"]["steps"] >= 512
-    policy = load_policy(str(tmp_path / "aware" / "policy.zip"))
+    policy = load_policy(str(tmp_path / "aware" / "policy.zip"), observe_perturbation=True)
     assert policy.observation_shape == (AWARE.size,)
     assert policy.meta.env_config["observe_perturbation"] is True
     report = evaluate_robustness(
