@@ -157,10 +157,19 @@ def race_command(args: argparse.Namespace) -> int:
                 ranked=args.ranked,
                 grid_order="random" if args.grid == "random" else None,
                 progress=progress,
-                record=args.replay is not None or args.watch,
+                record=True,  # the replay also keeps why a policy left the race
                 env_kwargs={"car": params},
             )
     console.print(results_table(result.to_dict()))
+    names = {car.agent: car.name for car in result.cars}
+    for event in replay.events if replay is not None else []:
+        if event["type"] == "dnf" and event.get("detail"):
+            console.print(
+                f"{names[event['car']]}: dnf ({event['reason']}) at {event['t']:.2f} s: "
+                f"{event['detail']}",
+                markup=False,
+                soft_wrap=True,  # one line, whole, as the error was raised
+            )
     if args.replay is not None and replay is not None:
         replay.save(args.replay)
         console.print(f"replay written to {args.replay}")

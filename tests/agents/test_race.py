@@ -142,3 +142,25 @@ def test_results_table_title_counts_laps_in_english() -> None:
     assert results_table(base | {"laps": 2, "ranked": True}).title == (
         "hangar · 2 laps · seed 0 · ranked"
     )
+
+
+@pytest.mark.component("stable-baselines3")
+def test_cli_race_says_why_a_policy_left_the_race(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A checkpoint trained on other observations (32 lidar rays) fails at its first action:
+    the race goes on for the others, and the table is followed by the reason, not only
+    ``dnf (error)``."""
+    from agents.checkpoint import export_sb3
+    from tests.agents.models import make_ppo, vector_space
+
+    narrow = ObservationLayout(32, 3)
+    ckpt = export_sb3(
+        make_ppo(obs_space=vector_space(narrow)), tmp_path / "narrow.zip", name="narrow",
+        env_config={"lidar_rays": 32},
+    )  # fmt: skip
+    assert main(["race", "--track", "oval", "--laps", "1", "--agents", f"{ckpt},pursuit"]) == 0
+    out = capsys.readouterr().out
+    assert "dnf (error)" in out
+    assert f"expects observation shape ({narrow.size},), got ({LAYOUT.size},)" in out
+    assert "narrow: dnf (error) at 0.00 s: CheckpointError" in out
