@@ -161,11 +161,11 @@ def race_command(args: argparse.Namespace) -> int:
                 env_kwargs={"car": params},
             )
     console.print(results_table(result.to_dict()))
-    names = {car.agent: car.name for car in result.cars}
+    who = {car.agent: car.name for car in result.cars}
     for event in replay.events if replay is not None else []:
         if event["type"] == "dnf" and event.get("detail"):
             console.print(
-                f"{names[event['car']]}: dnf ({event['reason']}) at {event['t']:.2f} s: "
+                f"{who[event['car']]}: dnf ({event['reason']}) at {event['t']:.2f} s: "
                 f"{event['detail']}",
                 markup=False,
                 soft_wrap=True,  # one line, whole, as the error was raised
