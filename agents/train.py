@@ -211,7 +211,7 @@ class TrainArgs:
     (agents.robustness.rarl_callback)"""
     observe_perturbation: bool = False
     """perturbation-aware observations: each car also observes its own model-uncertainty
-    values (9 floats, 0 for the nominal car; arena.observations.CONTEXT_FEATURES), in
+    values (9 floats, 0 for the nominal car; arena.uncertainty.CONTEXT_FEATURES), in
     training and wherever the checkpoint is raced or scored (recorded in its env_config)"""
     init_from: Path | None = None
     """start from the policy weights of this Slipstream checkpoint (fine-tuning; the value

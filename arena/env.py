@@ -98,7 +98,7 @@ class RacingEnv(RaceEpisodeEnv):
     :mod:`arena.observations`. ``"dict"``: the same, named (``lidar``, the ego feature
     names, ``track_ahead`` (7, 2), ``opponents`` (k, 5)). With ``observe_perturbation=True``
     both end with the car's own model-uncertainty values (9 floats, ``perturbation``: 0 for
-    the nominal car, fixed scales, :data:`arena.observations.CONTEXT_FEATURES`) — a
+    the nominal car, fixed scales, :data:`arena.uncertainty.CONTEXT_FEATURES`) — a
     perturbation-aware observation, on either backend. ``"image"``: a 160×120
     grayscale ego camera (uint8, (120, 160, 1)), rendered headless with pybullet's
     TinyRenderer — slower.

@@ -49,8 +49,8 @@ from arena.deepracer import (
     read_model_metadata,
 )
 from arena.observations import (
-    CONTEXT_FEATURES,
     CONTEXT_LIMIT,
+    CONTEXT_SIZE,
     EGO_FEATURES,
     EGO_HIGH,
     EGO_LOW,
@@ -305,7 +305,7 @@ class RaceEpisodeEnv(ParallelEnv):
         )
         if self.layout.context:
             named["perturbation"] = spaces.Box(
-                -CONTEXT_LIMIT, CONTEXT_LIMIT, (len(CONTEXT_FEATURES),), dtype=np.float32
+                -CONTEXT_LIMIT, CONTEXT_LIMIT, (CONTEXT_SIZE,), dtype=np.float32
             )
         return spaces.Dict(named)
 

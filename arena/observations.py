@@ -15,7 +15,17 @@ The ``"vector"`` observation of one car is a flat float32 array::
   which a pure-pursuit driver steers by and a learner can read curvature from;
 * opponents: the ``k`` nearest other cars, nearest first, each
   ``[present, dx, dy, dvx, dvy]`` in the car's frame (x forward, y left): positions / lidar
-  range, relative velocities / v_max; absent slots (fewer cars, or finished ones) are zeros.
+  range, relative velocities / v_max; absent slots (fewer cars, or finished ones) are zeros;
+* perturbation (only with ``observe_perturbation=True``, :attr:`ObservationLayout.context`):
+  the car's own model-uncertainty values (``arena.uncertainty.CONTEXT_FEATURES``: friction,
+  mass, motor and steering-gain multipliers, steering offset, latency, action noise, lidar
+  noise and dropout) as ``(value − nominal) / scale`` with fixed scales (the half-widths of
+  the widest training set, ``agents.robustness.wide_dynamics``;
+  :func:`arena.uncertainty.perturbation_context`), so 0 is the nominal car and ±1 the edge of
+  that set whatever set an env draws from — the same meaning in training, in a robustness
+  grid and on either backend. A perturbation-aware policy is told its car's conditions (an
+  oracle, as a universal policy is in Yu et al.'s "Preparing for the Unknown", 2017), where
+  a plain one must race them blind.
 
 Every element is clipped to the bounds of :func:`vector_bounds`, so an observation always lies
 inside the observation space.
@@ -56,20 +66,9 @@ EGO_LOW = np.array([-1.0, -2.0, -1.0, -2.0, -1.0, -3.0, -2.0])
 EGO_HIGH = np.array([2.0, 2.0, 1.0, 2.0, 1.0, 3.0, 2.0])
 OPP_LOW = np.array([0.0, -1.0, -1.0, -2.0, -2.0])
 OPP_HIGH = np.array([1.0, 1.0, 1.0, 2.0, 2.0])
-# The perturbation block: parameter names (arena.uncertainty.PARAM_NAMES) and the scale of
-# each, (value - nominal) / scale; clipped to ±CONTEXT_LIMIT (latency 10 steps reads 3.3).
-CONTEXT_FEATURES = (
-    "friction",
-    "mass",
-    "motor",
-    "steer_gain",
-    "steer_offset",
-    "latency",
-    "action_noise",
-    "lidar_noise",
-    "lidar_dropout",
-)
-CONTEXT_SCALES = (0.6, 0.3, 0.3, 0.225, 0.075, 3.0, 0.15, 0.05, 0.1)
+# The perturbation block: its length (arena.uncertainty.CONTEXT_FEATURES, whose values it
+# holds) and the bound it is clipped to (latency 10 steps reads 3.3).
+CONTEXT_SIZE = 9
 CONTEXT_LIMIT = 4.0
 # The ego feature scaled by the road's half-width rather than by a constant.
 _IS_OFFSET = np.array([name == "lateral_offset" for name in EGO_FEATURES])
@@ -115,7 +114,7 @@ class ObservationLayout:
     def perturbation(self) -> slice:
         """Slice of the perturbation block (empty without :attr:`context`)."""
         start = self.opponents.stop
-        return slice(start, start + (len(CONTEXT_FEATURES) if self.context else 0))
+        return slice(start, start + (CONTEXT_SIZE if self.context else 0))
 
     def bounds(self) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
         """Low and high bounds (size,) of the vector observation (fresh copies)."""
@@ -129,7 +128,7 @@ def _bounds(
 ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     """Read-only bounds of :meth:`ObservationLayout.bounds`, built once per layout."""
     ahead = np.full(2 * len(LOOKAHEAD), TRACK_LIMIT)
-    ctx = np.full(len(CONTEXT_FEATURES) if context else 0, CONTEXT_LIMIT)
+    ctx = np.full(CONTEXT_SIZE if context else 0, CONTEXT_LIMIT)
     low_parts = [np.zeros(n_rays), EGO_LOW, -ahead, np.tile(OPP_LOW, k_opponents), -ctx]
     high_parts = [np.ones(n_rays), EGO_HIGH, ahead, np.tile(OPP_HIGH, k_opponents), ctx]
     low = np.concatenate(low_parts).astype(np.float32)
@@ -257,7 +256,8 @@ def vector_observation(
         opponents: (..., n, k, 5) from :func:`opponent_features`.
         layout: sizes of the blocks.
         ops: array namespace.
-        context: (..., n, 9) from :func:`perturbation_features`, when ``layout.context``.
+        context: (..., n, 9) from :func:`arena.uncertainty.perturbation_context`, when
+            ``layout.context``.
 
     Raises:
         ValueError: ``context`` given without ``layout.context``, or missing with it.
@@ -274,22 +274,6 @@ def vector_observation(
 def with_context(obs: NDArray[np.float32], context: FloatArray, ops: NumpyOps = NUMPY) -> Any:
     """Observations without the perturbation block (..., n, D) float32 with it appended
     (..., n, D + 9), clipped to ±:data:`CONTEXT_LIMIT` (context (..., n, 9) from
-    :func:`perturbation_features`)."""
+    :func:`arena.uncertainty.perturbation_context`)."""
     block = ops.cast(ops.clip(context, -CONTEXT_LIMIT, CONTEXT_LIMIT), ops.float32)
     return ops.concat([obs, block], axis=-1)
-
-
-def perturbation_features(
-    values: FloatArray, columns: tuple[int, ...], nominal: FloatArray, ops: NumpyOps = NUMPY
-) -> FloatArray:
-    """The perturbation block (..., n, 9), unclipped: ``(values[..., columns] − nominal) /``
-    :data:`CONTEXT_SCALES`.
-
-    Args:
-        values: (..., n, n_params) perturbation values, ``arena.uncertainty.PARAM_NAMES`` order.
-        columns: the 9 columns of :data:`CONTEXT_FEATURES` in that order.
-        nominal: (9,) their nominal values.
-        ops: array namespace.
-    """
-    picked = values[..., list(columns)]
-    return (picked - ops.floats(tuple(float(x) for x in nominal))) / ops.floats(CONTEXT_SCALES)

@@ -52,7 +52,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from arena.batch.xp import NUMPY, NumpyOps
-from arena.observations import CONTEXT_FEATURES, perturbation_features
 from arena.sim import CarScales
 from tracks.errors import SlipstreamError
 
@@ -80,7 +79,13 @@ PARAM_NAMES = (*DYNAMICS, *PERCEPTION, *REWARD)
 INDEX = {name: k for k, name in enumerate(PARAM_NAMES)}
 LATENCY = INDEX["latency"]
 REWARD_NOISE = INDEX["reward_noise"]
-_CONTEXT_COLUMNS = tuple(INDEX[name] for name in CONTEXT_FEATURES)
+# What a perturbation-aware observation holds (arena.observations.ObservationLayout.context):
+# these parameters as (value - nominal) / scale, the scales the half-widths of the widest
+# training set (agents.robustness.wide_dynamics), so the same value reads the same whatever
+# set an env draws from.
+CONTEXT_FEATURES = (*DYNAMICS, "lidar_noise", "lidar_dropout")
+CONTEXT_SCALES = (0.6, 0.3, 0.3, 0.225, 0.075, 3.0, 0.15, 0.05, 0.1)
+_CONTEXT_COLUMNS = [INDEX[name] for name in CONTEXT_FEATURES]
 _POSITIVE = ("friction", "mass", "motor", "steer_gain", "contrast")
 _FRACTIONS = ("lidar_dropout", "shadow")
 
@@ -310,7 +315,7 @@ def nominal_values() -> FloatArray:
     return nom
 
 
-_CONTEXT_NOMINAL = _read_only(nominal_values()[list(_CONTEXT_COLUMNS)])
+_CONTEXT_NOMINAL = tuple(float(x) for x in nominal_values()[_CONTEXT_COLUMNS])
 
 
 def _check_values(values: FloatArray, what: str) -> None:
@@ -484,9 +489,12 @@ def applied(values: FloatArray) -> FloatArray:
 
 
 def perturbation_context(values: Any, ops: NumpyOps = NUMPY) -> Any:
-    """The observation's perturbation block (..., n, 9) of values (..., n, n_params)
-    (:func:`arena.observations.perturbation_features`; 0 for the nominal car)."""
-    return perturbation_features(values, _CONTEXT_COLUMNS, _CONTEXT_NOMINAL, ops)
+    """The observation's perturbation block (..., n, 9), unclipped, of values
+    (..., n, n_params) in :data:`PARAM_NAMES` order (numpy or ``ops``'s arrays):
+    ``(values[..., CONTEXT_FEATURES] − nominal) /`` :data:`CONTEXT_SCALES`, 0 for the
+    nominal car."""
+    picked = values[..., _CONTEXT_COLUMNS]
+    return (picked - ops.floats(_CONTEXT_NOMINAL)) / ops.floats(CONTEXT_SCALES)
 
 
 def normalised(cfg: UncertaintyConfig, values: FloatArray) -> FloatArray:

@@ -353,7 +353,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "--observe-perturbation",
         action="store_true",
         help="the robust arms observe their cars' perturbation (perturbation-aware "
-        "observations, arena.observations.CONTEXT_FEATURES; labelled +obs)",
+        "observations, arena.uncertainty.CONTEXT_FEATURES; labelled +obs)",
     )
     p.add_argument("--n-envs", type=int, default=8, help="races per track group")
     p.add_argument("--n-cars", type=int, default=4)

@@ -66,7 +66,7 @@ from arena.core import (
 )
 from arena.lidar import DEFAULT_FOV, DEFAULT_RANGE
 from arena.observations import (
-    CONTEXT_FEATURES,
+    CONTEXT_SIZE,
     LOOKAHEAD,
     ObservationLayout,
     ego_features,
@@ -258,7 +258,7 @@ class BatchSim:
         self.layout = ObservationLayout(lidar_rays, k_opponents, observe_perturbation)
         self._base_layout = ObservationLayout(lidar_rays, k_opponents)  # what _observe builds
         if observe_perturbation:
-            self._context = ops.zeros((n_envs, n_cars, len(CONTEXT_FEATURES)))
+            self._context = ops.zeros((n_envs, n_cars, CONTEXT_SIZE))
         self.max_range = DEFAULT_RANGE
         self.off_track_limit, self.stuck_time = off_track_limit, stuck_time
         self.runoff = runoff

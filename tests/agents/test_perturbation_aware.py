@@ -5,6 +5,7 @@ and where the block is missing (a plain race, a ranked submission) the error say
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -89,28 +90,23 @@ def test_a_ranked_bundle_refuses_an_aware_checkpoint(
     assert not out.exists()
 
 
-def test_training_with_the_option_records_it_and_scores_it(tmp_path: Path) -> None:
-    from agents.train import TrainArgs, main
+def _tiny_run(tmp_path: Path, name: str, **changes: Any) -> Any:
+    """``slipstream train --backend batch --uncertainty sample --observe-perturbation`` on
+    the oval, a few hundred steps (``changes``: other TrainArgs fields)."""
+    from agents.train import TrainArgs
 
-    summary = main(
-        TrainArgs(
-            backend="batch",
-            tracks=["oval"],
-            n_cars=2,
-            n_envs=2,
-            total_timesteps=512,
-            n_steps=64,
-            batch_size=128,
-            n_epochs=1,
-            eval_every=0,
-            uncertainty="sample",
-            procedural=0.5,
-            observe_perturbation=True,
-            out=tmp_path,
-            run_name="aware",
-            progress_bar=False,
-        )
-    )
+    return TrainArgs(
+        backend="batch", tracks=["oval"], n_cars=2, n_envs=2, total_timesteps=512, n_steps=64,
+        batch_size=128, n_epochs=1, eval_every=0, uncertainty="sample",
+        observe_perturbation=True, out=tmp_path, run_name=name, progress_bar=False,
+        **changes,
+    )  # fmt: skip
+
+
+def test_training_with_the_option_records_it_and_scores_it(tmp_path: Path) -> None:
+    from agents.train import main
+
+    summary = main(_tiny_run(tmp_path, "aware", procedural=0.5))
     assert summary["training"]["steps"] >= 512
     policy = load_policy(str(tmp_path / "aware" / "policy.zip"), observe_perturbation=True)
     assert policy.observation_shape == (AWARE.size,)
@@ -132,24 +128,9 @@ def test_training_refuses_the_option_without_uncertainty_and_a_plain_start(
 
     with pytest.raises(PolicyError, match="nominal"):
         main(TrainArgs(observe_perturbation=True, out=tmp_path))
+    plain = Path("agents/data/ppo_racer.zip")
     with pytest.raises(PolicyError, match=r"\(64, 100\) does not fit .*\(64, 109\)"):
-        main(
-            TrainArgs(
-                backend="batch",
-                tracks=["oval"],
-                n_cars=2,
-                n_envs=2,
-                total_timesteps=128,
-                n_steps=64,
-                batch_size=128,
-                uncertainty="sample",
-                observe_perturbation=True,
-                init_from=Path("agents/data/ppo_racer.zip"),
-                out=tmp_path,
-                run_name="plain-start",
-                progress_bar=False,
-            )
-        )
+        main(_tiny_run(tmp_path, "plain-start", init_from=plain))
 
 
 def test_a_redrawn_generated_track_keeps_the_block() -> None:

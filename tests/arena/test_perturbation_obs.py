@@ -13,14 +13,11 @@ from pettingzoo.test import parallel_api_test
 from arena import RacingEnv
 from arena.batch.parallel import BatchParallelEnv
 from arena.batch.sim import BatchSim
-from arena.observations import (
-    CONTEXT_FEATURES,
-    CONTEXT_LIMIT,
-    CONTEXT_SCALES,
-    ObservationLayout,
-)
+from arena.observations import CONTEXT_LIMIT, CONTEXT_SIZE, ObservationLayout
 from arena.sim import SimError
 from arena.uncertainty import (
+    CONTEXT_FEATURES,
+    CONTEXT_SCALES,
     Perturbation,
     UncertaintyConfig,
     default_config,
@@ -46,7 +43,7 @@ WIDE_STEP = default_config("sample", resample="step")
 
 def test_the_block_is_appended_and_every_other_slice_stays_where_it_was() -> None:
     plain, aware = ObservationLayout(64, 3), ObservationLayout(64, 3, context=True)
-    assert aware.size == plain.size + len(CONTEXT_FEATURES) == plain.size + 9
+    assert aware.size == plain.size + len(CONTEXT_FEATURES) == plain.size + CONTEXT_SIZE == 109
     for name in ("lidar", "ego", "track_ahead", "opponents"):
         assert getattr(aware, name) == getattr(plain, name)
     assert plain.perturbation == slice(plain.size, plain.size)  # empty without the option
