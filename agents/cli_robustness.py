@@ -151,7 +151,12 @@ def robustness_command(args: argparse.Namespace) -> int:
     stem = f"{Path(args.policy).stem}_{Path(args.track).stem}".replace(":", "_")
     json_path = save_report(report, args.out / f"{stem}.json")
     png_path = save_plot(report, args.out / f"{stem}.png")
-    console.print(summary_table(report.to_dict()))
+    # A checkpoint is titled by the file asked for, its run name beside (ppo_racer.zip's is
+    # "pilot6": the name alone did not say which file was scored).
+    title = Path(args.policy).name
+    if report.policy != title:
+        title = f"{title} ({report.policy})"
+    console.print(summary_table(report.to_dict(), title))
     console.print(f"report {json_path}\nplot   {png_path}")
     if args.json is not None:
         text = json.dumps(report.to_dict(), indent=2)
@@ -162,11 +167,13 @@ def robustness_command(args: argparse.Namespace) -> int:
     return 0
 
 
-def summary_table(report: dict[str, Any]) -> Any:
-    """A rich table of a robustness report's headline figures."""
+def summary_table(report: dict[str, Any], title: str | None = None) -> Any:
+    """A rich table of a robustness report's headline figures, titled ``title`` (default the
+    report's policy name) on its track."""
     from rich.table import Table  # noqa: PLC0415 - heavy, imported on use
 
-    table = Table(title=f"{report['policy']} on {report['track']} · effective speed, m/s")
+    name = title or report["policy"]
+    table = Table(title=f"{name} on {report['track']} · effective speed, m/s")
     table.add_column("measure")
     table.add_column("score", justify="right")
     table.add_column("/ nominal", justify="right")

@@ -331,6 +331,26 @@ def test_cli_robustness_batch_backend(capsys: pytest.CaptureFixture[str], tmp_pa
     assert len(report["confirmed"]) == 1 and report["confirmed"][0]["pybullet"] > 0.0
 
 
+@pytest.mark.component("stable-baselines3")
+def test_cli_robustness_titles_a_checkpoint_by_its_file(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    """The shipped checkpoints' run names are "pilot6" and "cvar_s1": the table names the
+    file that was scored, the run name beside it; a baseline is titled by its name alone."""
+    small = ["--friction", "0.6", "--latency", "0", "--motor", "1", "--steer-offset", "0"]
+    argv = ["--backend", "batch", "--random", "0", "--nature-steps", "0", "--confirm", "0"]
+    for policy, title in [
+        ("agents/data/ppo_racer.zip", "ppo_racer.zip (pilot6) on oval"),
+        ("pursuit", "pursuit on oval"),
+    ]:
+        code = cli_main(
+            ["robustness", policy, *argv, *small, "--scales", "1", "--out", str(tmp_path)]
+        )
+        assert code == 0
+        out = " ".join(capsys.readouterr().out.split())
+        assert f"{title} · effective speed" in out
+
+
 def test_a_grid_of_ones_own_axes_and_heavier_cars_lap_slower_on_both_backends() -> None:
     """A reviewer's grid over axes the default grid does not vary (mass, steering gain).
 
