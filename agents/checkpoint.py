@@ -1002,7 +1002,6 @@ class TorchMLPPolicy:
         self.meta = meta
         self.name = name or meta.name
         self.observation_shape = meta.observation_shape
-        self.observes_perturbation = meta.observes_perturbation
         pol = meta.policy
         n_in = math.prod(self.observation_shape)
         body, head = _build_mlp(n_in, pol.net_arch, meta.n_outputs, pol.activation)
@@ -1076,6 +1075,11 @@ class TorchMLPPolicy:
         if self.meta.policy.clip_actions:
             return np.clip(actions, self._low, self._high)
         return actions
+
+    @property
+    def observes_perturbation(self) -> bool:
+        """Trained on perturbation-aware observations (``meta.observes_perturbation``)."""
+        return self.meta.observes_perturbation
 
     def act(self, obs: NDArray[np.floating[Any]]) -> NDArray[np.float32] | int:
         """The deterministic action for one observation.

@@ -44,6 +44,7 @@ from arena.observations import (
     opponent_features,
     track_ahead_features,
     vector_observation,
+    with_context,
     wrap_angle,
 )
 from arena.perception import jitter_image, jitter_lidar
@@ -242,6 +243,7 @@ class RacingEnv(RaceEpisodeEnv):
         self._lookahead = np.asarray(LOOKAHEAD)
         self._renderer: TopDownRenderer | None = None
         self._values = Perturbation.nominal(n_cars).values
+        self._context = perturbation_context(self._values)  # the observation's block (N, 9)
         self._fifo = np.zeros((MAX_LATENCY + 1, n_cars, 2))
 
     # ---- the pybullet pipeline -------------------------------------------------------------
@@ -283,6 +285,7 @@ class RacingEnv(RaceEpisodeEnv):
     def _pipeline_perturb(self, values: NDArray[np.float64]) -> None:
         old = self._values
         self._values = values.copy()
+        self._context = perturbation_context(self._values)
         if not np.array_equal(old[:, :LATENCY_COL], values[:, :LATENCY_COL]):
             self.sim.set_scales(Perturbation(self._values).scales())
 
@@ -442,8 +445,9 @@ class RacingEnv(RaceEpisodeEnv):
         ahead = track_ahead_features(
             state.poses, points.reshape(self.n_cars, -1, 2), self.lidar.max_range
         )
-        context = perturbation_context(self._values) if self.layout.context else None
-        flat = vector_observation(ranges, ego, ahead, opp, self.layout, context=context)
+        flat = vector_observation(ranges, ego, ahead, opp, self.layout)
+        if self.layout.context:
+            flat = with_context(flat, self._context)
         if self.obs_mode == "vector":
             return list(flat)
         out: list[Obs] = []

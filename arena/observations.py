@@ -245,9 +245,9 @@ def vector_observation(
     opponents: FloatArray,
     layout: ObservationLayout,
     ops: NumpyOps = NUMPY,
-    context: FloatArray | None = None,
 ) -> NDArray[np.float32]:
-    """Flat observations (..., n, size) float32, clipped into the observation bounds.
+    """Flat observations (..., n, size) float32 without the perturbation block, clipped into
+    the observation bounds (:func:`with_context` appends the block with ``layout.context``).
 
     Args:
         lidar: (..., n, n_rays) normalised ranges in [0, 1].
@@ -256,19 +256,11 @@ def vector_observation(
         opponents: (..., n, k, 5) from :func:`opponent_features`.
         layout: sizes of the blocks.
         ops: array namespace.
-        context: (..., n, 9) from :func:`arena.uncertainty.perturbation_context`, when
-            ``layout.context``.
-
-    Raises:
-        ValueError: ``context`` given without ``layout.context``, or missing with it.
     """
-    if (context is not None) != layout.context:
-        raise ValueError("the perturbation block goes with layout.context, and only with it")
     low, high = _bounds(layout.n_rays, layout.k_opponents, False)  # built once: a hot path
     rows = tuple(ego.shape[:-1])
     flat = ops.concat([lidar, ego, ahead.reshape(*rows, -1), opponents.reshape(*rows, -1)], axis=-1)
-    out = ops.cast(ops.clip(flat, ops.const(low), ops.const(high)), ops.float32)
-    return out if context is None else with_context(out, context, ops)
+    return ops.cast(ops.clip(flat, ops.const(low), ops.const(high)), ops.float32)
 
 
 def with_context(obs: NDArray[np.float32], context: FloatArray, ops: NumpyOps = NUMPY) -> Any:

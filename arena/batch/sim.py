@@ -256,7 +256,6 @@ class BatchSim:
         self.dt = 1.0 / control_hz
         self.physics_dt = 1.0 / physics_hz
         self.layout = ObservationLayout(lidar_rays, k_opponents, observe_perturbation)
-        self._base_layout = ObservationLayout(lidar_rays, k_opponents)  # what _observe builds
         if observe_perturbation:
             self._context = ops.zeros((n_envs, n_cars, CONTEXT_SIZE))
         self.max_range = DEFAULT_RANGE
@@ -680,7 +679,7 @@ class BatchSim:
         opp = opponent_features(
             poses, velocity, st.active, self.layout.k_opponents, self.max_range, p.max_speed, ops
         )
-        return vector_observation(lidar, ego, ahead, opp, self._base_layout, ops)
+        return vector_observation(lidar, ego, ahead, opp, self.layout, ops)
 
     # ---- step -------------------------------------------------------------------------------
     def step(self, actions: Array, nature: Any = None) -> StepResult:
