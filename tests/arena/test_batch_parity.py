@@ -17,7 +17,8 @@ from arena.batch.parallel import BatchParallelEnv
 from arena.batch.sim import BatchSim
 from arena.observations import ObservationLayout
 from arena.race import run_race
-from arena.sim import Simulator
+from arena.sim import CarScales, Simulator
+from arena.uncertainty import PARAM_NAMES, nominal_values
 from tests.arena.conftest import drag_strip, pose_at
 from tracks import list_tracks
 
@@ -123,3 +124,50 @@ def test_rear_end_impact_follows_bullet_within_bound() -> None:
         worst = max(worst, float(err.max()))
     assert touched
     assert worst < CONTACT_BOUND
+
+
+def _slide_commands(k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Full throttle for 2 s, then a weave: steering command ±0.6 at 6 rad/s."""
+    t = 0.05 * k
+    return np.array([0.0 if t < 2.0 else 0.6 * np.sin(6.0 * (t - 2.0))]), np.array([1.0])
+
+
+def _bullet_slide(friction: float, steps: int) -> list[np.ndarray]:
+    sim = Simulator(drag_strip(), 1)
+    try:
+        scales = CarScales.nominal(1)
+        scales.friction[:] = friction
+        sim.set_scales(scales)
+        sim.reset(pose_at(drag_strip(), -38.0)[None])
+        out = []
+        for k in range(steps):
+            st = sim.step(*_slide_commands(k))
+            assert not st.wall_contact.any()
+            out.append(st.poses[0].copy())
+        return out
+    finally:
+        sim.close()
+
+
+def test_a_slide_at_low_grip_follows_bullet_within_bound() -> None:
+    """Near the grip limit — where the robustness grid's worst cells are — the two backends
+    still integrate the same tyres: at friction 0.4, 5.7 m/s and a weave the front tyres
+    cannot hold (the path departs from the friction-0.6 one by over 0.3 m, so the friction
+    circle binds), the batched car stays within ``FREE_BOUND`` of pybullet's."""
+    steps = 68  # 3.4 s: the weave ends before either car reaches a wall
+    reference = _bullet_slide(0.4, steps)
+    more_grip = _bullet_slide(0.6, steps)
+    assert max(np.hypot(*(a[:2] - b[:2])) for a, b in zip(reference, more_grip, strict=True)) > 0.3
+    batch = BatchSim(drag_strip(), 1, 1, auto_reset=False)
+    values = nominal_values()
+    values[PARAM_NAMES.index("friction")] = 0.4
+    batch.set_perturbation(values[None, None])
+    batch.set_poses(pose_at(drag_strip(), -38.0)[None, None])
+    worst = 0.0
+    for k in range(steps):
+        steer, throttle = _slide_commands(k)
+        res = batch.step(np.stack([steer, throttle], axis=-1)[None])
+        assert not res.wall.any()
+        xy = np.array([float(batch.state.car.x[0, 0]), float(batch.state.car.y[0, 0])])
+        worst = max(worst, float(np.hypot(*(xy - reference[k][:2]))))
+    assert worst < FREE_BOUND
