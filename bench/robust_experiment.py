@@ -19,7 +19,8 @@ worst-10 % mean (CVaR₁₀) and the share of grid races not finished; per arm: 
 seeds of the per-track mean, with a 95 % t-interval, and for each robust arm a paired t-test
 against ``nominal`` (seeds paired by index). The goal of the issue is printed beside:
 worst-10 % mean ≥ 1.25 × nominal arm's with non-overlapping intervals, at ≤ 5 % loss of
-nominal score.
+nominal score; under the table, what it asks beside what any run reached (:func:`ceiling`:
+the best run's worst-10 % mean, and the mean over tracks of each track's best).
 
 Runs already trained (``<out>/<arm>_s<seed>/policy.zip``) and scored (``scores.json`` beside
 it, for the same evaluation settings) are reused, so the command can be stopped and started
