@@ -335,7 +335,7 @@ def test_cli_robustness_batch_backend(capsys: pytest.CaptureFixture[str], tmp_pa
 def test_cli_robustness_titles_a_checkpoint_by_its_file(
     capsys: pytest.CaptureFixture[str], tmp_path: Path
 ) -> None:
-    """The shipped checkpoints' run names are "pilot6" and "cvar_s1": the table names the
+    """The shipped checkpoints' run names are "pilot6" and "cvar50_ft": the table names the
     file that was scored, the run name beside it; a baseline is titled by its name alone."""
     small = ["--friction", "0.6", "--latency", "0", "--motor", "1", "--steer-offset", "0"]
     argv = ["--backend", "batch", "--random", "0", "--nature-steps", "0", "--confirm", "0"]
