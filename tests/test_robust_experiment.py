@@ -4,7 +4,6 @@ arm intervals, the goal check against the nominal arm, and the ceiling line prin
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
 import subprocess
@@ -15,18 +14,12 @@ from types import ModuleType
 import numpy as np
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
+from tests.bench_scripts import REPO, load_bench
 
 
 @pytest.fixture(scope="module")
 def exp() -> ModuleType:
-    spec = importlib.util.spec_from_file_location(
-        "robust_experiment", REPO / "bench/robust_experiment.py"
-    )
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_bench("robust_experiment")
 
 
 def _run(w10: dict[str, float], nominal: float = 6.0) -> dict[str, dict[str, float]]:
