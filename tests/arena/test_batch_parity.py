@@ -9,6 +9,8 @@ lap times agree within 10% on every built-in track (measured: identical to the 0
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import pytest
 
@@ -17,7 +19,7 @@ from arena.batch.parallel import BatchParallelEnv
 from arena.batch.sim import BatchSim
 from arena.observations import ObservationLayout
 from arena.race import run_race
-from arena.sim import CarScales, Simulator
+from arena.sim import CarScales, SimState, Simulator
 from arena.uncertainty import PARAM_NAMES, nominal_values
 from tests.arena.conftest import drag_strip, pose_at
 from tracks import list_tracks
@@ -34,11 +36,22 @@ def _commands(k: int) -> tuple[np.ndarray, np.ndarray]:
     return steer, throttle
 
 
-def _bullet_path(track: object, poses: np.ndarray) -> list[np.ndarray]:
+def _bullet_path(
+    track: object,
+    poses: np.ndarray,
+    commands: Callable[[int], tuple[np.ndarray, np.ndarray]] = _commands,
+    steps: int = TWO_SECONDS,
+    friction: float = 1.0,
+) -> list[SimState]:
+    """Pybullet's state after each of ``steps`` control steps of ``commands`` from ``poses``,
+    every car at ``friction``."""
     sim = Simulator(track, len(poses))  # type: ignore[arg-type]
     try:
+        scales = CarScales.nominal(len(poses))
+        scales.friction[:] = friction
+        sim.set_scales(scales)
         sim.reset(poses)
-        return [sim.step(*_commands(k)).poses.copy() for k in range(TWO_SECONDS)]
+        return [sim.step(*commands(k)) for k in range(steps)]
     finally:
         sim.close()
 
@@ -47,7 +60,7 @@ def _bullet_path(track: object, poses: np.ndarray) -> list[np.ndarray]:
 def test_free_driving_follows_bullet_within_bound(device: str) -> None:
     track = drag_strip()
     poses = np.stack([pose_at(track, -28.0, -0.3), pose_at(track, -31.0, 0.3)])
-    reference = _bullet_path(track, poses)
+    reference = [st.poses for st in _bullet_path(track, poses)]
     sim = BatchSim(track, 1, 2, device=device, auto_reset=False)
     sim.set_poses(poses[None])
     worst = 0.0
@@ -133,20 +146,12 @@ def _slide_commands(k: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _bullet_slide(friction: float, steps: int) -> list[np.ndarray]:
-    sim = Simulator(drag_strip(), 1)
-    try:
-        scales = CarScales.nominal(1)
-        scales.friction[:] = friction
-        sim.set_scales(scales)
-        sim.reset(pose_at(drag_strip(), -38.0)[None])
-        out = []
-        for k in range(steps):
-            st = sim.step(*_slide_commands(k))
-            assert not st.wall_contact.any()
-            out.append(st.poses[0].copy())
-        return out
-    finally:
-        sim.close()
+    """The car's pose (3,) after each step of :func:`_slide_commands`, no wall touched."""
+    states = _bullet_path(
+        drag_strip(), pose_at(drag_strip(), -38.0)[None], _slide_commands, steps, friction
+    )
+    assert not any(st.wall_contact.any() for st in states)
+    return [st.poses[0] for st in states]
 
 
 def test_a_slide_at_low_grip_follows_bullet_within_bound() -> None:
