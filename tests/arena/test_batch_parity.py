@@ -22,7 +22,7 @@ from arena.race import run_race
 from arena.sim import CarScales, SimState, Simulator
 from arena.uncertainty import PARAM_NAMES, nominal_values
 from tests.arena.conftest import drag_strip, pose_at
-from tracks import list_tracks
+from tracks import Track, list_tracks
 
 FREE_BOUND = 0.01  # m over 2 s without contacts
 TWO_SECONDS = 40  # control steps at 20 Hz
@@ -56,6 +56,24 @@ def _bullet_path(
         sim.close()
 
 
+def _batch_deviation(
+    sim: BatchSim,
+    commands: Callable[[int], tuple[np.ndarray, np.ndarray]],
+    reference: list[np.ndarray],
+) -> float:
+    """The farthest (m) the batched cars of race 0 get from pybullet's poses ``reference``
+    (one (N, 3) array a step) under the same ``commands``, touching no wall and no car."""
+    worst = 0.0
+    for k, poses in enumerate(reference):
+        steer, throttle = commands(k)
+        res = sim.step(np.stack([steer, throttle], axis=-1)[None])
+        assert not sim.ops.to_numpy(res.wall).any() and not sim.ops.to_numpy(res.contact).any()
+        x = sim.ops.to_numpy(sim.state.car.x)[0]
+        y = sim.ops.to_numpy(sim.state.car.y)[0]
+        worst = max(worst, float(np.hypot(x - poses[:, 0], y - poses[:, 1]).max()))
+    return worst
+
+
 @pytest.mark.parametrize("device", ["numpy", "torch:cpu"])
 def test_free_driving_follows_bullet_within_bound(device: str) -> None:
     track = drag_strip()
@@ -63,15 +81,7 @@ def test_free_driving_follows_bullet_within_bound(device: str) -> None:
     reference = [st.poses for st in _bullet_path(track, poses)]
     sim = BatchSim(track, 1, 2, device=device, auto_reset=False)
     sim.set_poses(poses[None])
-    worst = 0.0
-    for k in range(TWO_SECONDS):
-        steer, throttle = _commands(k)
-        res = sim.step(np.stack([steer, throttle], axis=-1)[None])
-        assert not sim.ops.to_numpy(res.wall).any() and not sim.ops.to_numpy(res.contact).any()
-        x = sim.ops.to_numpy(sim.state.car.x)[0]
-        y = sim.ops.to_numpy(sim.state.car.y)[0]
-        worst = max(worst, float(np.hypot(x - reference[k][:, 0], y - reference[k][:, 1]).max()))
-    assert worst < FREE_BOUND
+    assert _batch_deviation(sim, _commands, reference) < FREE_BOUND
     # The cars really drove (several metres), so the bound is not trivially met.
     assert np.hypot(*(reference[-1][0, :2] - poses[0, :2])) > 5.0
 
@@ -145,13 +155,11 @@ def _slide_commands(k: int) -> tuple[np.ndarray, np.ndarray]:
     return np.array([0.0 if t < 2.0 else 0.6 * np.sin(6.0 * (t - 2.0))]), np.array([1.0])
 
 
-def _bullet_slide(friction: float, steps: int) -> list[np.ndarray]:
-    """The car's pose (3,) after each step of :func:`_slide_commands`, no wall touched."""
-    states = _bullet_path(
-        drag_strip(), pose_at(drag_strip(), -38.0)[None], _slide_commands, steps, friction
-    )
+def _bullet_slide(track: Track, friction: float, steps: int) -> list[np.ndarray]:
+    """The car's poses (1, 3) after each step of :func:`_slide_commands`, no wall touched."""
+    states = _bullet_path(track, pose_at(track, -38.0)[None], _slide_commands, steps, friction)
     assert not any(st.wall_contact.any() for st in states)
-    return [st.poses[0] for st in states]
+    return [st.poses for st in states]
 
 
 def test_a_slide_at_low_grip_follows_bullet_within_bound() -> None:
@@ -160,19 +168,16 @@ def test_a_slide_at_low_grip_follows_bullet_within_bound() -> None:
     cannot hold (the path departs from the friction-0.6 one by over 0.3 m, so the friction
     circle binds), the batched car stays within ``FREE_BOUND`` of pybullet's."""
     steps = 68  # 3.4 s: the weave ends before either car reaches a wall
-    reference = _bullet_slide(0.4, steps)
-    more_grip = _bullet_slide(0.6, steps)
-    assert max(np.hypot(*(a[:2] - b[:2])) for a, b in zip(reference, more_grip, strict=True)) > 0.3
-    batch = BatchSim(drag_strip(), 1, 1, auto_reset=False)
+    track = drag_strip()
+    reference = _bullet_slide(track, 0.4, steps)
+    more_grip = _bullet_slide(track, 0.6, steps)
+    departure = (
+        np.hypot(*(a[0, :2] - b[0, :2])) for a, b in zip(reference, more_grip, strict=True)
+    )
+    assert max(departure) > 0.3
+    batch = BatchSim(track, 1, 1, auto_reset=False)
     values = nominal_values()
     values[PARAM_NAMES.index("friction")] = 0.4
     batch.set_perturbation(values[None, None])
-    batch.set_poses(pose_at(drag_strip(), -38.0)[None, None])
-    worst = 0.0
-    for k in range(steps):
-        steer, throttle = _slide_commands(k)
-        res = batch.step(np.stack([steer, throttle], axis=-1)[None])
-        assert not res.wall.any()
-        xy = np.array([float(batch.state.car.x[0, 0]), float(batch.state.car.y[0, 0])])
-        worst = max(worst, float(np.hypot(*(xy - reference[k][:2]))))
-    assert worst < FREE_BOUND
+    batch.set_poses(pose_at(track, -38.0)[None, None])
+    assert _batch_deviation(batch, _slide_commands, reference) < FREE_BOUND
