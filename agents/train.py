@@ -55,7 +55,7 @@ import sys
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, get_args, get_origin, get_type_hints
 
@@ -201,6 +201,11 @@ class TrainArgs:
     """a curriculum on the bounds (--backend batch; sample, wide or cvar): the randomisation
     starts at 30 % of its width about the nominal car and widens linearly to the full
     set over this share of the budget (0: off; agents.curriculum)"""
+    edge_share: float = 0.0
+    """a corner-weighted sampler (sample, wide or cvar): each perturbation parameter of a draw
+    takes one of its interval's ends with this probability instead of a uniform value, so
+    several bad values at once (low grip with long latency) are drawn often (0: uniform;
+    arena.uncertainty.UncertaintyConfig.edge_share)"""
     nature_every: int = 20_000
     """adversarial: train the nature for nature_steps after every this many racer steps"""
     nature_steps: int = 10_000
@@ -348,6 +353,13 @@ def _check(args: TrainArgs) -> None:
         raise PolicyError(
             "curriculum widens domain randomisation on --backend batch: it needs "
             f"--uncertainty {', '.join(CURRICULUM_ARMS)}, not {args.backend}/{args.uncertainty}"
+        )
+    if not 0.0 <= args.edge_share <= 1.0:
+        raise PolicyError(f"edge_share is a probability in [0, 1], got {args.edge_share}")
+    if args.edge_share and args.uncertainty not in CURRICULUM_ARMS:
+        raise PolicyError(
+            "edge_share reshapes domain randomisation: it needs --uncertainty "
+            f"{', '.join(CURRICULUM_ARMS)}, not {args.uncertainty}"
         )
     if args.natures < 1:
         raise PolicyError(f"natures must be at least 1, got {args.natures}")
@@ -844,7 +856,8 @@ def training_env_kwargs(args: TrainArgs, env_kwargs: dict[str, Any]) -> dict[str
     if args.uncertainty != "nominal":
         from agents.robustness import training_uncertainty  # noqa: PLC0415 - heavy
 
-        out["uncertainty"] = training_uncertainty(args.uncertainty)
+        cfg = training_uncertainty(args.uncertainty)
+        out["uncertainty"] = replace(cfg, edge_share=args.edge_share) if args.edge_share else cfg
     return out
 
 
@@ -981,6 +994,7 @@ def main(args: TrainArgs) -> dict[str, Any]:
             else {}
         ),
         **({"curriculum": args.curriculum} if args.curriculum else {}),
+        **({"edge_share": args.edge_share} if args.edge_share else {}),
         **({"natures": args.natures} if args.natures > 1 else {}),
         **({"observe_perturbation": True} if args.observe_perturbation else {}),
         "backend": args.backend,

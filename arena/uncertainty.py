@@ -172,6 +172,12 @@ class UncertaintyConfig:
             fraction of each interval (None: no limit).
         perturbation: in ``fixed`` mode, the perturbation used when ``reset`` gets none
             (names to a value or one value per car; the rest nominal).
+        edge_share: in ``sample`` mode, the probability that a parameter of a draw takes
+            one of its interval's two ends (each as likely) instead of a uniform value
+            inside: a corner-weighted sampler (0: plain uniform draws, the same stream as
+            before; the reward noise stays Gaussian). Uniform draws put little mass where
+            several parameters are bad at once (friction 0.5 or less, latency 3 and a
+            steering offset past 0.06 rad together: 0.6 % of wide draws; 7 % at 0.5).
     """
 
     mode: Mode = "nominal"
@@ -184,6 +190,7 @@ class UncertaintyConfig:
     nature_acts: Literal["reset", "step"] = "reset"
     nature_rate: float | None = None
     perturbation: Mapping[str, float | Sequence[float]] | None = None
+    edge_share: float = 0.0
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -196,6 +203,10 @@ class UncertaintyConfig:
             raise UncertaintyError(f"nature_acts must be reset or step: {self.nature_acts!r}")
         if self.nature_rate is not None and not 0.0 < self.nature_rate <= 1.0:
             raise UncertaintyError(f"nature_rate must be in (0, 1], got {self.nature_rate}")
+        if not 0.0 <= self.edge_share <= 1.0:
+            raise UncertaintyError(f"edge_share must be in [0, 1], got {self.edge_share}")
+        if self.edge_share and self.mode != "sample":
+            raise UncertaintyError(f"edge_share needs mode 'sample', not {self.mode!r}")
         if self.reward.noise < 0.0 or self.reward.noise_clip <= 0.0:
             raise UncertaintyError("reward noise must be >= 0 and noise_clip > 0")
         ep = self.episode
@@ -418,12 +429,18 @@ def sample_values(
 
     ``shape`` is ``n_cars`` (one race) or ``(n_envs, n_cars)`` (a batch of races). Latency
     is uniform over the whole steps ``lo..hi``; the reward noise column is drawn from the
-    truncated Gaussian (:func:`reward_noise`).
+    truncated Gaussian (:func:`reward_noise`). With ``cfg.edge_share`` > 0 each other value
+    is then, with that probability, replaced by its interval's low or high end (a coin
+    each); with 0 the generator's stream is exactly the uniform sampler's.
     """
     shape = _shape(shape)
     lo, hi = cfg.lows, cfg.highs
     values = lo + rng.random((*shape, len(PARAM_NAMES))) * (hi - lo)
     values[..., LATENCY] = rng.integers(int(lo[LATENCY]), int(hi[LATENCY]) + 1, size=shape)
+    if cfg.edge_share:
+        at_end = rng.random(values.shape) < cfg.edge_share
+        at_end[..., REWARD_NOISE] = False
+        values = np.where(at_end, np.where(rng.random(values.shape) < 0.5, hi, lo), values)
     values[..., REWARD_NOISE] = reward_noise(cfg, rng, shape)
     return values
 

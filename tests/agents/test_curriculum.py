@@ -121,3 +121,31 @@ def test_train_records_the_curriculum_and_refuses_it_where_it_cannot_apply(
         args = dataclasses.replace(TrainArgs(backend="batch", out=tmp_path), **bad)
         with pytest.raises(PolicyError, match=match):
             main(args)
+
+
+def test_train_draws_corner_weighted_when_asked_and_refuses_it_without_randomisation(
+    tmp_path: Path,
+) -> None:
+    """``--edge-share``: the training envs' draws are corner-weighted (the config the
+    simulators get carries it), the run records it, and it needs a randomising arm."""
+    from agents.train import training_env_kwargs
+
+    args = TrainArgs(backend="batch", uncertainty="cvar", edge_share=0.5, out=tmp_path)
+    cfg = training_env_kwargs(args, {})["uncertainty"]
+    assert cfg.edge_share == 0.5 and cfg.dynamics == training_uncertainty("cvar").dynamics
+    plain = training_env_kwargs(dataclasses.replace(args, edge_share=0.0), {})["uncertainty"]
+    assert plain == training_uncertainty("cvar")
+    summary = main(
+        TrainArgs(
+            backend="batch", tracks=["oval"], n_cars=2, n_envs=2, total_timesteps=512,
+            n_steps=32, batch_size=128, n_epochs=1, net_arch=[16, 16], eval_every=0,
+            out=tmp_path, run_name="edges", progress_bar=False, seed=2,
+            uncertainty="sample", edge_share=1.0,
+        )
+    )  # fmt: skip
+    assert summary["args"]["edge_share"] == 1.0
+    assert "--edge-share 1.0" in summary["training"]["command"]
+    for bad in ({"uncertainty": "nominal"}, {"uncertainty": "adversarial"}, {"edge_share": 1.5}):
+        settings = {"uncertainty": "sample", "edge_share": 0.5, **bad}
+        with pytest.raises(PolicyError, match="edge_share"):
+            main(dataclasses.replace(TrainArgs(backend="batch", out=tmp_path), **settings))

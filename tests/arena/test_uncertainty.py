@@ -163,6 +163,25 @@ def test_same_seed_same_draws_other_seed_other_draws() -> None:
     assert not np.array_equal(first[:, : len(PARAM_NAMES)], first[:, len(PARAM_NAMES) :])
 
 
+@pytest.mark.parametrize("backend", ["pybullet", "batch"])
+def test_corner_weighted_draws_reach_the_cars_on_both_backends(backend: str) -> None:
+    """``edge_share=1``: every car of every episode races at a corner of the box (each
+    parameter at its low or high end, as the infos report), on either simulator."""
+    dyn = DynamicsBounds(friction=(0.5, 1.2), latency=(0, 3), steer_offset=(-0.08, 0.08))
+    cfg = UncertaintyConfig(mode="sample", dynamics=dyn, edge_share=1.0)
+    env = arena.parallel_env(
+        backend=backend, track="oval", n_cars=4, uncertainty=cfg, max_cycles=20
+    )
+    seen: dict[str, set[float]] = {"friction": set(), "latency": set(), "steer_offset": set()}
+    for seed in range(6):
+        _, infos = env.reset(seed=seed)
+        for car in env.cars:
+            for name, values in seen.items():
+                values.add(infos[car]["perturbation"][name])
+    env.close()
+    assert seen == {"friction": {0.5, 1.2}, "latency": {0, 3}, "steer_offset": {-0.08, 0.08}}
+
+
 def test_fixed_reproduces_the_given_perturbation_exactly() -> None:
     cfg = UncertaintyConfig(mode="fixed")
     env = RacingEnv(track="oval", n_cars=2, uncertainty=cfg)

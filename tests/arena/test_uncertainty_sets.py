@@ -7,6 +7,7 @@ seeded streams) in milliseconds, so a mutation run kills what it can here first.
 
 from __future__ import annotations
 
+import dataclasses
 import re
 import warnings
 from typing import Any
@@ -91,6 +92,11 @@ def test_every_refusal_names_the_setting_and_the_bad_value() -> None:
         mode="adversarial",
         dynamics=DynamicsBounds(friction=(0.9, 0.9)),
     )
+    refused("edge_share must be in [0, 1], got 1.5", mode="sample", edge_share=1.5)
+    refused("edge_share must be in [0, 1], got -0.1", mode="sample", edge_share=-0.1)
+    refused("edge_share needs mode 'sample', not 'adversarial'", mode="adversarial",
+            dynamics=DynamicsBounds(friction=(0.6, 1.2)), edge_share=0.5)  # fmt: skip
+    refused("edge_share needs mode 'sample', not 'fixed'", mode="fixed", edge_share=0.5)
 
 
 def test_the_accepted_edges_of_each_setting() -> None:
@@ -316,6 +322,7 @@ def test_to_dict_is_the_whole_config_as_plain_data() -> None:
         "nature_acts": "reset",
         "nature_rate": None,
         "perturbation": {"friction": 0.7, "latency": [1, 2]},
+        "edge_share": 0.0,
     }
     assert type(out["perturbation"]) is dict
 
@@ -439,6 +446,39 @@ def test_draws_fill_the_box_and_nothing_else() -> None:
     # Cars and parameters are independent draws.
     assert not np.array_equal(values[:, 0, FRICTION], values[:, 1, FRICTION])
     assert abs(np.corrcoef(flat[:, FRICTION], flat[:, INDEX["w_collision"]])[0, 1]) < 0.1
+
+
+def test_the_corner_weighted_sampler_puts_the_given_share_on_the_ends() -> None:
+    """``edge_share``: each value is an interval end with that probability (low and high as
+    likely), the rest uniform inside; latency ends are whole steps; the reward noise stays
+    the truncated Gaussian; 0 is the uniform sampler's stream exactly; 1 is the box's corners."""
+    n = 20_000
+    uniform = sample_values(BOX, np.random.default_rng(5), (n,))
+    off = sample_values(dataclasses.replace(BOX, edge_share=0.0), np.random.default_rng(5), (n,))
+    np.testing.assert_array_equal(uniform, off)
+    half = sample_values(dataclasses.replace(BOX, edge_share=0.5), np.random.default_rng(5), (n,))
+    assert np.all(half >= BOX.lows) and np.all(half <= BOX.highs)
+    for name in ("friction", "steer_offset", "lidar_dropout", "w_collision"):
+        k = INDEX[name]
+        at_lo = np.mean(half[:, k] == BOX.lows[k])
+        at_hi = np.mean(half[:, k] == BOX.highs[k])
+        assert abs(at_lo - 0.25) < 0.02 and abs(at_hi - 0.25) < 0.02, name
+        assert np.mean(uniform[:, k] == BOX.lows[k]) < 0.001, name  # uniform: no atoms
+    # Latency 1..3: an end w.p. 1/2, else uniform over the three steps.
+    lat = half[:, LATENCY]
+    assert set(lat.tolist()) == {1.0, 2.0, 3.0}
+    assert abs(np.mean(lat == 3.0) - (0.25 + 0.5 / 3)) < 0.02
+    assert abs(np.mean(lat == 2.0) - 0.5 / 3) < 0.02
+    # Several bad values at once (lowest grip, longest latency) are drawn far more often.
+    corner = (half[:, FRICTION] == BOX.lows[FRICTION]) & (lat == 3.0)
+    assert abs(corner.mean() - 0.25 * (0.25 + 0.5 / 3)) < 0.02
+    noise = half[:, REWARD_NOISE]
+    clip = BOX.reward.noise * BOX.reward.noise_clip
+    assert np.all(np.abs(noise) < clip) and abs(noise.mean()) < 0.005  # no atoms at ±c·λ
+    corners = sample_values(dataclasses.replace(BOX, edge_share=1.0), np.random.default_rng(1), 500)
+    for k in (k for k in BOX.free if k != REWARD_NOISE):
+        assert set(corners[:, k].tolist()) <= {BOX.lows[k], BOX.highs[k]}, PARAM_NAMES[k]
+    assert dataclasses.replace(BOX, edge_share=0.5).scaled(0.5).edge_share == 0.5
 
 
 def test_same_seed_same_draws_and_an_int_shape_is_one_race() -> None:
