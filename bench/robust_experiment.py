@@ -7,7 +7,8 @@ its rollout after ``--cvar-warmup`` of the budget (:mod:`agents.cvar`; in the re
 ``cvar@S[,wW]`` when not 0.5 and 0.2) —, ``adversarial`` — RARL, batched natures —,
 ``robust_mg`` — Zhang et al.'s nature over dynamics and reward; ``--curriculum R`` widens
 the bounds of the domain-randomisation arms over the first R of the budget,
-:mod:`agents.curriculum`, labelled ``+curR``; ``--natures K`` gives the nature arms a
+:mod:`agents.curriculum`, labelled ``+curR``, and ``--edge-share E`` draws their
+perturbations corner-weighted, labelled ``+edgeE``; ``--natures K`` gives the nature arms a
 population of K natures, labelled ``+popK``; ``--observe-perturbation`` lets the robust
 arms observe their cars' perturbation, labelled ``+obs``) and every seed, ``slipstream
 train --backend batch`` from scratch with the same budget (``--steps`` agent-steps), the
@@ -137,6 +138,7 @@ def train_run(args: argparse.Namespace, arm: str, seed: int) -> Path:
             cvar_share=args.cvar_share,
             cvar_warmup=args.cvar_warmup,
             curriculum=args.curriculum if arm in CURRICULUM_ARMS else 0.0,
+            edge_share=args.edge_share if arm in CURRICULUM_ARMS else 0.0,
             natures=args.natures if arm in NATURE_ARMS else 1,
             observe_perturbation=observes(args, arm),
             nature_every=max(1, args.steps // 10),
@@ -155,14 +157,16 @@ def observes(args: argparse.Namespace, arm: str) -> bool:
 def arm_label(args: argparse.Namespace, arm: str) -> str:
     """An arm's name in the results: ``cvar`` with a share other than 0.5 is ``cvar@S``, and
     with a warm-up other than 0.2 ``cvar@S,wW``; a domain-randomisation arm trained with a
-    curriculum on its bounds gets ``+curR``; one on perturbation-aware observations
-    ``+obs``."""
+    curriculum on its bounds gets ``+curR``, one with corner-weighted draws ``+edgeE``; one
+    on perturbation-aware observations ``+obs``."""
     label = arm
     if arm == "cvar" and (args.cvar_share != 0.5 or args.cvar_warmup != 0.2):
         warmup = "" if args.cvar_warmup == 0.2 else f",w{args.cvar_warmup:g}"
         label = f"cvar@{args.cvar_share:g}{warmup}"
     if args.curriculum and arm in CURRICULUM_ARMS:
         label += f"+cur{args.curriculum:g}"
+    if args.edge_share and arm in CURRICULUM_ARMS:
+        label += f"+edge{args.edge_share:g}"
     if args.natures > 1 and arm in NATURE_ARMS:
         label += f"+pop{args.natures}"
     if observes(args, arm):
@@ -389,6 +393,13 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         default=0.0,
         help="sample, wide and cvar arms: widen the bounds over this share of the budget "
         "(agents.curriculum; 0: off)",
+    )
+    p.add_argument(
+        "--edge-share",
+        type=float,
+        default=0.0,
+        help="sample, wide and cvar arms: corner-weighted draws, each parameter at an end of "
+        "its interval with this probability (UncertaintyConfig.edge_share; labelled +edgeE)",
     )
     p.add_argument(
         "--natures",

@@ -98,3 +98,33 @@ def test_from_json_prints_the_table_and_the_ceiling(exp: ModuleType, tmp_path: P
     assert "the best run reached 5.20 (cvar seed 2)" in out
     assert "the best on every track at once 5.70" in out
     assert "the goal needs a worst-10 % mean ≥ 4.62 m/s" in out  # 1.25 × 3.7
+
+
+def test_an_edge_share_labels_the_randomising_arms_and_reaches_their_training(
+    exp: ModuleType, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``--edge-share E``: the domain-randomisation arms are ``+edgeE`` in the results and
+    train with corner-weighted draws; nominal and the nature arms are untouched."""
+    import argparse
+
+    import agents.train
+
+    args = argparse.Namespace(
+        cvar_share=0.5, cvar_warmup=0.2, curriculum=0.0, natures=1,
+        observe_perturbation=False, edge_share=0.5, out=tmp_path, device="numpy",
+        train_tracks=["oval"], n_cars=2, n_envs=2, steps=4096, n_steps=32, batch_size=64,
+        procedural=0.0, procedural_length=[60.0, 160.0], procedural_difficulty=[0.2, 0.8],
+        procedural_hairpin=[], wall_ends_episode=True, n_epochs=1,
+    )  # fmt: skip
+    labels = {arm: exp.arm_label(args, arm) for arm in ("nominal", "sample", "cvar", "adversarial")}
+    assert labels == {
+        "nominal": "nominal", "sample": "sample+edge0.5", "cvar": "cvar+edge0.5",
+        "adversarial": "adversarial",
+    }  # fmt: skip
+    seen: dict[str, float] = {}
+    monkeypatch.setattr(
+        agents.train, "main", lambda a: seen.__setitem__(a.uncertainty, a.edge_share)
+    )
+    for arm in ("nominal", "sample", "adversarial"):
+        exp.train_run(args, arm, seed=1)
+    assert seen == {"nominal": 0.0, "sample": 0.5, "adversarial": 0.0}
