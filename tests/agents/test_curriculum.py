@@ -17,6 +17,17 @@ from agents.train import TrainArgs, main
 from arena.uncertainty import INDEX, UncertaintyError, default_config
 
 
+def _tiny_run(out: Path, name: str, **settings: Any) -> dict[str, Any]:
+    """A 512-step batched training run with ``settings``; its summary."""
+    return main(
+        TrainArgs(
+            backend="batch", tracks=["oval"], n_cars=2, n_envs=2, total_timesteps=512,
+            n_steps=32, batch_size=128, n_epochs=1, net_arch=[16, 16], eval_every=0,
+            out=out, run_name=name, progress_bar=False, seed=2, **settings,
+        )
+    )  # fmt: skip
+
+
 def test_the_scale_grows_linearly_from_the_start_to_the_full_set_then_stays() -> None:
     assert curriculum_scale(0, 1000, 0.5) == CURRICULUM_START
     assert curriculum_scale(250, 1000, 0.5) == pytest.approx((CURRICULUM_START + 1) / 2)
@@ -101,14 +112,7 @@ def test_the_callback_widens_every_simulator_during_ppo_training() -> None:
 def test_train_records_the_curriculum_and_refuses_it_where_it_cannot_apply(
     tmp_path: Path,
 ) -> None:
-    summary = main(
-        TrainArgs(
-            backend="batch", tracks=["oval"], n_cars=2, n_envs=2, total_timesteps=512,
-            n_steps=32, batch_size=128, n_epochs=1, net_arch=[16, 16], eval_every=0,
-            out=tmp_path, run_name="cur", progress_bar=False, seed=2,
-            uncertainty="cvar", curriculum=0.5,
-        )
-    )  # fmt: skip
+    summary = _tiny_run(tmp_path, "cur", uncertainty="cvar", curriculum=0.5)
     assert summary["args"]["curriculum"] == 0.5
     assert "--curriculum 0.5" in summary["training"]["command"]
     bad_settings: list[tuple[dict[str, Any], str]] = [
@@ -135,14 +139,7 @@ def test_train_draws_corner_weighted_when_asked_and_refuses_it_without_randomisa
     assert cfg.edge_share == 0.5 and cfg.dynamics == training_uncertainty("cvar").dynamics
     plain = training_env_kwargs(dataclasses.replace(args, edge_share=0.0), {})["uncertainty"]
     assert plain == training_uncertainty("cvar")
-    summary = main(
-        TrainArgs(
-            backend="batch", tracks=["oval"], n_cars=2, n_envs=2, total_timesteps=512,
-            n_steps=32, batch_size=128, n_epochs=1, net_arch=[16, 16], eval_every=0,
-            out=tmp_path, run_name="edges", progress_bar=False, seed=2,
-            uncertainty="sample", edge_share=1.0,
-        )
-    )  # fmt: skip
+    summary = _tiny_run(tmp_path, "edges", uncertainty="sample", edge_share=1.0)
     assert summary["args"]["edge_share"] == 1.0
     assert "--edge-share 1.0" in summary["training"]["command"]
     for bad in ({"uncertainty": "nominal"}, {"uncertainty": "adversarial"}, {"edge_share": 1.5}):
