@@ -857,7 +857,7 @@ def training_env_kwargs(args: TrainArgs, env_kwargs: dict[str, Any]) -> dict[str
         from agents.robustness import training_uncertainty  # noqa: PLC0415 - heavy
 
         cfg = training_uncertainty(args.uncertainty)
-        out["uncertainty"] = replace(cfg, edge_share=args.edge_share) if args.edge_share else cfg
+        out["uncertainty"] = replace(cfg, edge_share=args.edge_share)
     return out
 
 

@@ -439,9 +439,8 @@ def sample_values(
     values[..., LATENCY] = rng.integers(int(lo[LATENCY]), int(hi[LATENCY]) + 1, size=shape)
     if cfg.edge_share:
         at_end = rng.random(values.shape) < cfg.edge_share
-        at_end[..., REWARD_NOISE] = False
         values = np.where(at_end, np.where(rng.random(values.shape) < 0.5, hi, lo), values)
-    values[..., REWARD_NOISE] = reward_noise(cfg, rng, shape)
+    values[..., REWARD_NOISE] = reward_noise(cfg, rng, shape)  # drawn last: never an end
     return values
 
 
