@@ -791,9 +791,10 @@ def procedural_callback(args: TrainArgs, vec_env: Any) -> Any:
 
     At the end of a rollout one generated group (round robin) gets a fresh track: its
     simulators (and their reversed twins) are rebuilt on it and restarted, and PPO's next
-    rollout starts those slots as new episodes. Building a track's maps takes about half a
-    second, so this happens once per :data:`REDRAW_SAMPLES` agent-steps of rollouts (every
-    rollout when rollouts are at least that big); episodes of one group share its track.
+    rollout starts those slots as new episodes. Building a track's maps takes 1-3 s of a core
+    (100-250 m; twice with ``--randomise``, for the reversed twin; ``bench/map_build.py``), so
+    this happens once per :data:`REDRAW_SAMPLES` agent-steps of rollouts (every rollout when
+    rollouts are at least that big); episodes of one group share its track.
     """
     from stable_baselines3.common.callbacks import BaseCallback  # noqa: PLC0415 - heavy
 

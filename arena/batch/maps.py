@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 
 from arena.lidar import DEFAULT_RANGE, Lidar
 from arena.walls import DEFAULT_RUNOFF, Walls, wall_offsets
-from tracks import Track
+from tracks import Projection, Track
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -159,9 +159,9 @@ class TrackMaps:
 
         lgrid = Grid.covering(lo, hi, lidar_cell)
         lpts = lgrid.centres()
-        lproj = track.project(lpts)
-        lleft, lright = _wall_offsets_at(track, runoff, lproj.s)
-        near = np.minimum(lleft - lproj.d, lright + lproj.d) > -LIDAR_REACH
+        l_s, l_d, l_segment = _project_cells(track, lgrid, lpts, grid, pts, proj)
+        lleft, lright = _wall_offsets_at(track, runoff, l_s)
+        near = np.minimum(lleft - l_d, lright + l_d) > -LIDAR_REACH
         rows = np.flatnonzero(near)
         lidar = Lidar(walls, lidar_bins, 2 * math.pi, max_range)
         ranges = np.zeros((len(rows) + 1, lidar_bins), dtype=np.float32)  # last row: blind
@@ -169,7 +169,7 @@ class TrackMaps:
         for start in range(0, len(rows), block):
             part = rows[start : start + block]
             poses = np.column_stack([lpts[part], np.zeros(len(part))])
-            ranges[start : start + len(part)] = lidar.scan(poses, lproj.segment[part])
+            ranges[start : start + len(part)] = lidar.scan(poses, l_segment[part])
         lidar_row = np.full(len(lpts), len(rows), dtype=np.int64)
         lidar_row[rows] = np.arange(len(rows))
         n = track.n_points
@@ -197,6 +197,43 @@ class TrackMaps:
         """Bytes of the grids and the range table."""
         arrays = (self.segment, self.clearance, self.wall_normal, self.lidar_row, self.ranges)
         return sum(a.nbytes for a in arrays)
+
+
+def _project_cells(
+    track: Track,
+    coarse: Grid,
+    points: FloatArray,
+    fine: Grid,
+    fine_points: FloatArray,
+    fine_proj: Projection,
+) -> tuple[FloatArray, FloatArray, IntArray]:
+    """Progress ``s`` (M,) m, offset ``d`` (M,) m and segment (M,) of the ``coarse`` grid's
+    cell centres ``points`` (M, 2) m.
+
+    Projection is point by point, so a coarse centre that is, bit for bit, a centre of the
+    ``fine`` grid already projected (``fine_points``, ``fine_proj``) takes that answer: with
+    the same origin and a cell twice as large (the default 0.2 and 0.1 m: ``ix · 0.2`` and
+    ``2 ix · 0.1`` round alike) every centre but the last row and column does, and the k-d
+    tree is asked about the rest only. The result equals ``track.project(points)``.
+    """
+    h, w = coarse.shape
+    ratio = max(1, round(coarse.cell / fine.cell))
+    iy, ix = np.divmod(np.arange(h * w), w)
+    fy, fx = iy * ratio, ix * ratio
+    idx = np.flatnonzero((fy < fine.shape[0]) & (fx < fine.shape[1]))
+    at = fy[idx] * fine.shape[1] + fx[idx]
+    same = (fine_points[at] == points[idx]).all(axis=1)
+    idx, at = idx[same], at[same]
+    s = np.empty(len(points))
+    d = np.empty(len(points))
+    segment = np.empty(len(points), dtype=np.int64)
+    s[idx], d[idx], segment[idx] = fine_proj.s[at], fine_proj.d[at], fine_proj.segment[at]
+    rest = np.ones(len(points), dtype=bool)
+    rest[idx] = False
+    if rest.any():
+        proj = track.project(points[rest])
+        s[rest], d[rest], segment[rest] = proj.s, proj.d, proj.segment
+    return s, d, segment
 
 
 def _wall_offsets_at(track: Track, runoff: float, s: FloatArray) -> tuple[FloatArray, FloatArray]:
