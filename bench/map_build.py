@@ -168,10 +168,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.baseline_tree is not None and not (args.baseline_tree / "arena").is_dir():
         parser.error(f"--baseline-tree {args.baseline_tree}: no arena/ package there")
     doc = run(args)
-    if args.json:
-        print(json.dumps(doc, indent=2))
-    else:
+    if not args.json:
         print_table(doc)
+        return 0
+    print(json.dumps(doc, indent=2))  # also how a --baseline-tree child answers its parent
     return 0
 
 
